@@ -1,0 +1,83 @@
+"""Shared fixtures: a synthetic sequence (no rendering) and a tiny rendered one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from satpose.datasets.camera import PinholeCamera
+from satpose.datasets.geometry import Rigid3
+from satpose.datasets.sequence import Calibration, Ring, SequenceWriter, TargetGeometry
+
+TINY = ["--frames", "3", "--size", "320x256", "--spp", "4"]
+"""Arguments that scale a preset down for tests (see the brief: 320x256, 4 spp)."""
+
+
+def synthetic_calibration(width: int = 48, height: int = 32) -> Calibration:
+    K = np.array([[60.0, 0, 23.5], [0, 60.0, 15.5], [0, 0, 1]])
+    cam = PinholeCamera(width=width, height=height, K=K, dist=[-0.05, 0.01, 0.0, 0.0, 0.0])
+    return Calibration(
+        left=cam, right=cam, right_from_left=Rigid3.from_rotvec([0.0, 0.01, 0.0], [-0.3, 0.0, 0.0])
+    )
+
+
+def write_synthetic_sequence(path: Path, frames: int = 4, seed: int = 0) -> Path:
+    """A small valid stereo sequence with random images, truth and target geometry."""
+    rng = np.random.default_rng(seed)
+    calib = synthetic_calibration()
+    target = TargetGeometry(
+        ring=Ring(radius_m=0.3),
+        panel_corners=rng.normal(size=(4, 3)),
+        components=rng.normal(size=(3, 3)),
+        extras={"note": "synthetic"},
+    )
+    with SequenceWriter(
+        path,
+        name="synthetic",
+        kind="stereo",
+        rate_hz=2.0,
+        calibration=calib,
+        target=target,
+        generator={"tool": "tests"},
+    ) as w:
+        for k in range(frames):
+            left = rng.integers(0, 256, size=(32, 48, 3), dtype=np.uint8)
+            right = rng.integers(0, 256, size=(32, 48), dtype=np.uint8)
+            pose = Rigid3.from_rotvec(
+                rng.normal(size=3), rng.normal(size=3) + np.array([0.0, 0.0, 5.0])
+            )
+            masks = {"left": (left[..., 0] > 128).astype(np.uint8)}
+            w.add_frame(
+                k,
+                0.5 * k,
+                left,
+                right,
+                truth=pose,
+                angular_velocity=rng.normal(size=3),
+                linear_velocity=rng.normal(size=3),
+                masks=masks,
+            )
+    return path
+
+
+@pytest.fixture
+def synthetic_sequence(tmp_path: Path) -> Path:
+    return write_synthetic_sequence(tmp_path / "seq")
+
+
+@pytest.fixture
+def make_sequence():  # type: ignore[no-untyped-def]
+    """The `write_synthetic_sequence` function, for tests that need several sequences."""
+    return write_synthetic_sequence
+
+
+@pytest.fixture(scope="session")
+def rendered_tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """paper-docking, 3 frames, 320x256, 4 spp, rendered once per test session via the CLI."""
+    from satpose.tools.cli import main
+
+    out = tmp_path_factory.mktemp("render") / "paper-docking"
+    assert main(["render", "paper-docking", "--out", str(out), *TINY]) == 0
+    return out
