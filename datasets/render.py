@@ -1,0 +1,371 @@
+"""Render a scenario into a sequence folder (format v1) with Mitsuba 3.
+
+Image formation per camera and frame:
+
+1. Mitsuba path-traces an undistorted pinhole "canvas" camera (box reconstruction filter,
+   so a pixel is the mean radiance over its square). The canvas has the output camera's
+   focal length and is just large enough to cover the distorted field of view.
+2. Lens distortion: every output pixel is undistorted (OpenCV's radial-tangential model run
+   to convergence) and the canvas is sampled there (bilinear). Without distortion the
+   canvas is the output image.
+3. Sensor: exposure (auto: a white Lambertian surface facing the light reads ``white_level``),
+   photon shot noise (Poisson in electrons), Gaussian read noise, quantisation to 8/16 bit.
+
+Masks (object ids, ``target.MASK_IDS``) come from a one-sample-per-pixel ``shape_index`` AOV
+remapped with nearest-neighbour sampling.
+
+Mitsuba conventions bridged here (measured, see tests/datasets/test_render.py): its camera
+looks along +z with +x to the left and +y up, so the OpenCV camera is ``diag(-1, -1, 1)`` of
+it; its principal-point offset is ``(W/2 - 0.5 - cx) / W`` (opposite sign to OpenCV's
+``cx - W/2``), the 0.5 being OpenCV's pixel-centre origin.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from satpose.datasets.camera import PinholeCamera
+from satpose.datasets.config import to_plain
+from satpose.datasets.geometry import Rigid3
+from satpose.datasets.scenarios import Scenario, trajectory
+from satpose.datasets.scene import RenderError, load_mitsuba, scene_dict, target_shapes
+from satpose.datasets.sequence import SequenceWriter
+from satpose.datasets.target import MASK_IDS, geometry
+
+log = logging.getLogger(__name__)
+
+CANVAS_MARGIN_PX = 3
+_CV_FROM_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def _version() -> str:
+    try:
+        return metadata.version("satpose")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+@dataclass(frozen=True, kw_only=True)
+class View:
+    """One camera of the rig as the renderer sees it.
+
+    Attributes:
+        name: ``left`` or ``right``.
+        camera: the output camera (with distortion), as written to calib.yaml.
+        canvas: the undistorted camera Mitsuba renders.
+        sample_rc: (2, H, W) canvas (row, col) coordinates of every output pixel, or None when
+            the camera has no distortion (canvas == output).
+        cam_from_left: this camera's pose relative to the left camera.
+    """
+
+    name: str
+    camera: PinholeCamera
+    canvas: PinholeCamera
+    sample_rc: np.ndarray | None
+    cam_from_left: Rigid3
+
+
+def make_view(name: str, camera: PinholeCamera, cam_from_left: Rigid3) -> View:
+    """Build the canvas and the distortion sampling map of a camera."""
+    if abs(camera.fx - camera.fy) > 1e-9 * camera.fx or camera.K[0, 1] != 0.0:
+        raise RenderError(
+            f"the renderer needs square pixels and zero skew; camera {name} has "
+            f"fx={camera.fx}, fy={camera.fy}, skew={camera.K[0, 1]}"
+        )
+    if not camera.has_distortion:
+        return View(
+            name=name, camera=camera, canvas=camera, sample_rc=None, cam_from_left=cam_from_left
+        )
+    f = camera.fx
+    vv, uu = np.mgrid[0 : camera.height, 0 : camera.width]
+    xy = camera.undistort_points(np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float))
+    if not np.all(np.isfinite(xy)):
+        raise RenderError(f"camera {name}: distortion cannot be inverted over the image")
+    u_ideal = f * xy[:, 0]
+    v_ideal = f * xy[:, 1]
+    cx = -math.floor(u_ideal.min()) + CANVAS_MARGIN_PX
+    cy = -math.floor(v_ideal.min()) + CANVAS_MARGIN_PX
+    width = math.ceil(u_ideal.max() + cx) + CANVAS_MARGIN_PX + 1
+    height = math.ceil(v_ideal.max() + cy) + CANVAS_MARGIN_PX + 1
+    canvas = PinholeCamera(
+        width=width, height=height, K=np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
+    )
+    rc = np.stack(
+        [
+            (v_ideal + cy).reshape(camera.height, camera.width),
+            (u_ideal + cx).reshape(camera.height, camera.width),
+        ]
+    )
+    return View(name=name, camera=camera, canvas=canvas, sample_rc=rc, cam_from_left=cam_from_left)
+
+
+def sensor_dict(
+    mi: ModuleType, camera: PinholeCamera, target_from_cam: Rigid3, spp: int
+) -> dict[str, Any]:
+    """Mitsuba perspective sensor reproducing an undistorted OpenCV pinhole camera exactly."""
+    W, H = camera.width, camera.height
+    return {
+        "type": "perspective",
+        "fov_axis": "x",
+        "fov": math.degrees(2.0 * math.atan(W / (2.0 * camera.fx))),
+        "principal_point_offset_x": (W / 2 - 0.5 - camera.cx) / W,
+        "principal_point_offset_y": (H / 2 - 0.5 - camera.cy) / H,
+        "near_clip": 0.01,
+        "far_clip": 1000.0,
+        "to_world": mi.ScalarTransform4f((target_from_cam.matrix() @ _CV_FROM_MITSUBA).tolist()),
+        "film": {
+            "type": "hdrfilm",
+            "width": W,
+            "height": H,
+            "rfilter": {"type": "box"},
+            "pixel_format": "rgb",
+            "component_format": "float32",
+        },
+        "sampler": {"type": "independent", "sample_count": int(spp)},
+    }
+
+
+def distort(view: View, canvas_image: np.ndarray, nearest: bool = False) -> np.ndarray:
+    """Resample a canvas image (H', W'[, C]) into the distorted output image (H, W[, C])."""
+    if view.sample_rc is None:
+        return canvas_image
+    order = 0 if nearest else 1
+    img = canvas_image if canvas_image.ndim == 3 else canvas_image[..., None]
+    out = np.stack(
+        [
+            ndimage.map_coordinates(
+                img[..., c], view.sample_rc, order=order, mode="constant", cval=0.0
+            )
+            for c in range(img.shape[2])
+        ],
+        axis=-1,
+    )
+    return out if canvas_image.ndim == 3 else out[..., 0]
+
+
+def _look_along(direction: np.ndarray) -> np.ndarray:
+    """4x4 rotation whose +z column is ``direction`` (for Mitsuba's directional emitter)."""
+    z = direction / np.linalg.norm(direction)
+    helper = np.array([1.0, 0, 0]) if abs(z[0]) < 0.9 else np.array([0, 1.0, 0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    M = np.eye(4)
+    M[:3, :3] = np.c_[x, np.cross(z, x), z]
+    return M
+
+
+class StereoRenderer:
+    """Renders a scenario's rig around the target, frame by frame.
+
+    The scene is built once (textures uploaded once); per frame only the sensors and the light
+    move, in the target frame.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        parts: Mapping[str, float] | None = None,
+        extra_shapes: Mapping[str, dict[str, Any]] | None = None,
+    ) -> None:
+        """Args:
+        scenario: what to render.
+        parts: truth-render mode: only these parts, black and emitting the given radiance
+            (see `target_shapes`); no light.
+        extra_shapes: more Mitsuba shapes in the target frame (e.g. emissive markers).
+        """
+        self.scenario = scenario
+        mi, self.variant = load_mitsuba(scenario.render.variant)
+        self.mi = mi
+        calib = scenario.rig.calibration()
+        self.views = [make_view("left", calib.left, Rigid3.identity())]
+        if calib.right is not None and calib.right_from_left is not None:
+            self.views.append(make_view("right", calib.right, calib.right_from_left))
+        shapes = target_shapes(mi, scenario.target, scenario.seed, emissive=parts)
+        all_shapes = {**shapes.shapes, **(extra_shapes or {})}
+        dark = {
+            "type": "point",
+            "position": [0.0, 0.0, 0.0],
+            "intensity": {"type": "rgb", "value": [0.0] * 3},
+        }
+        light = self._light_dict(Rigid3.identity()) if parts is None else dark
+        # optimize=False: Mitsuba would otherwise merge shapes that share a BSDF.
+        self.scene = mi.load_dict(
+            scene_dict(all_shapes, light, scenario.render.max_depth), optimize=False
+        )
+        self.params = mi.traverse(self.scene)
+        self._id_scene = None
+        if parts is None and scenario.render.masks:
+            # Object ids: every part emits its mask id; one sample per pixel, no light.
+            ids = target_shapes(
+                mi,
+                scenario.target,
+                scenario.seed,
+                emissive={p: float(i) for p, i in MASK_IDS.items() if i > 0},
+            )
+            self._id_scene = mi.load_dict(scene_dict(ids.shapes, dark, 1), optimize=False)
+
+    def _light_dict(self, target_from_left: Rigid3) -> dict[str, Any]:
+        lc = self.scenario.light
+        if lc.kind == "point":
+            pos = target_from_left.apply(np.asarray(lc.position_m, float))
+            return {
+                "type": "point",
+                "position": pos.tolist(),
+                "intensity": {"type": "rgb", "value": [lc.intensity] * 3},
+            }
+        d = target_from_left.rotate(np.asarray(lc.direction, float))
+        return {
+            "type": "directional",
+            "to_world": self.mi.ScalarTransform4f(_look_along(d).tolist()),
+            "irradiance": {"type": "rgb", "value": [lc.intensity] * 3},
+        }
+
+    def _move_light(self, target_from_left: Rigid3) -> None:
+        lc = self.scenario.light
+        if "light.position" in self.params:
+            if lc.kind == "point":
+                pos = target_from_left.apply(np.asarray(lc.position_m, float))
+                self.params["light.position"] = self.mi.Point3f(*pos.tolist())
+        elif "light.to_world" in self.params:
+            d = target_from_left.rotate(np.asarray(lc.direction, float))
+            self.params["light.to_world"] = self.mi.Transform4f(_look_along(d).tolist())
+        self.params.update()
+
+    def exposure_scale(self, left_cam_from_target: Rigid3) -> float:
+        """Radiance -> fraction-of-full-scale factor for this frame (see SensorConfig)."""
+        sc, lc = self.scenario.sensor, self.scenario.light
+        if sc.exposure == "fixed":
+            return sc.gain
+        if lc.kind == "point":
+            d2 = float(np.sum((left_cam_from_target.t - np.asarray(lc.position_m)) ** 2))
+            irradiance = lc.intensity / d2
+        else:
+            irradiance = lc.intensity
+        return sc.white_level * math.pi / irradiance
+
+    def _seed(self, frame: int, view: int, stream: int) -> int:
+        return (self.scenario.seed * 1_000_003 + frame * 8 + view * 2 + stream) % (2**32)
+
+    def radiance(
+        self, frame: int, left_cam_from_target: Rigid3, spp: int | None = None
+    ) -> dict[str, np.ndarray]:
+        """Linear radiance per camera, (H, W, 3) float32, distortion applied, no noise."""
+        target_from_left = left_cam_from_target.inverse()
+        self._move_light(target_from_left)
+        out = {}
+        for k, view in enumerate(self.views):
+            target_from_cam = target_from_left @ view.cam_from_left.inverse()
+            sensor = self.mi.load_dict(
+                sensor_dict(self.mi, view.canvas, target_from_cam, spp or self.scenario.render.spp)
+            )
+            img = np.array(
+                self.mi.render(self.scene, sensor=sensor, seed=self._seed(frame, k, 0)),
+                dtype=np.float32,
+            )
+            out[view.name] = distort(view, img)
+        return out
+
+    def masks(self, frame: int, left_cam_from_target: Rigid3) -> dict[str, np.ndarray]:
+        """Object-id masks per camera, (H, W) uint8 (``MASK_IDS``; one sample per pixel)."""
+        if self._id_scene is None:
+            raise RenderError("this renderer was built without masks (render.masks = false)")
+        target_from_left = left_cam_from_target.inverse()
+        out = {}
+        for k, view in enumerate(self.views):
+            target_from_cam = target_from_left @ view.cam_from_left.inverse()
+            sensor = self.mi.load_dict(sensor_dict(self.mi, view.canvas, target_from_cam, 1))
+            ids = np.array(
+                self.mi.render(self._id_scene, sensor=sensor, spp=1, seed=self._seed(frame, k, 1))
+            )[..., 0]
+            out[view.name] = np.rint(distort(view, ids, nearest=True)).astype(np.uint8)
+        return out
+
+    def expose(self, frame: int, view_index: int, radiance: np.ndarray, scale: float) -> np.ndarray:
+        """Sensor model: radiance (H, W, 3) -> noisy quantised image, BGR or grey."""
+        sc = self.scenario.sensor
+        rng = np.random.default_rng([self.scenario.seed, frame, view_index, 7])
+        x = np.clip(radiance.astype(np.float64) * scale, 0.0, 8.0)
+        if sc.mono:
+            x = x @ np.array([0.2126, 0.7152, 0.0722])
+        electrons = rng.poisson(x * sc.full_well_e).astype(np.float64)
+        electrons += rng.normal(0.0, sc.read_noise_e, size=electrons.shape)
+        top = 2**sc.bit_depth - 1
+        dn = np.clip(np.rint(electrons / sc.full_well_e * top), 0, top)
+        img = dn.astype(np.uint8 if sc.bit_depth == 8 else np.uint16)
+        return img if sc.mono else np.ascontiguousarray(img[..., ::-1])
+
+    def frame_images(
+        self, frame: int, left_cam_from_target: Rigid3
+    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
+        """Final images (and masks, if configured) of one frame, keyed by camera name."""
+        rad = self.radiance(frame, left_cam_from_target)
+        scale = self.exposure_scale(left_cam_from_target)
+        images = {
+            v.name: self.expose(frame, k, rad[v.name], scale) for k, v in enumerate(self.views)
+        }
+        masks = self.masks(frame, left_cam_from_target) if self.scenario.render.masks else None
+        return images, masks
+
+
+def render_sequence(
+    scenario: Scenario,
+    out: str | Path,
+    *,
+    overwrite: bool = False,
+    progress: Callable[[int], None] | None = None,
+) -> Path:
+    """Render ``scenario`` into the sequence folder ``out`` (format v1, written atomically).
+
+    Args:
+        progress: called with the frame index after each frame is written.
+
+    Returns:
+        The sequence folder.
+    """
+    calib = scenario.rig.calibration()
+    traj = trajectory(scenario)
+    # Open the writer first: a bad output folder fails before the scene is built.
+    writer = SequenceWriter(
+        out,
+        name=scenario.name,
+        kind="stereo" if calib.is_stereo else "mono",
+        rate_hz=scenario.rate_hz,
+        calibration=calib,
+        target=geometry(scenario.target),
+        overwrite=overwrite,
+    )
+    with writer:
+        renderer = StereoRenderer(scenario)
+        writer.generator = {
+            "tool": "satpose-render",
+            "version": _version(),
+            "variant": renderer.variant,
+            "scenario": to_plain(scenario),
+        }
+        for k in range(scenario.frames):
+            pose = traj.left_cam_from_target[k]
+            images, masks = renderer.frame_images(k, pose)
+            writer.add_frame(
+                k,
+                float(traj.t_s[k]),
+                images["left"],
+                images.get("right"),
+                truth=pose,
+                angular_velocity=traj.angular_velocity[k],
+                linear_velocity=traj.linear_velocity[k],
+                masks=masks,
+            )
+            if progress is not None:
+                progress(k)
+    return Path(out)
