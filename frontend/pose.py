@@ -1,0 +1,305 @@
+"""The per-frame pose of a non-cooperative target and the target frame it is expressed in.
+
+The target frame is not known in advance. It is fixed at the first frame with a ring and a
+landmark (seed 000 eq. 9): origin = ring centre, z = ring normal, x toward the *anchor*
+landmark (a panel corner if one is visible, else a component, else an ORB feature). Every
+landmark seen with a 3-D point is then *mapped*: its coordinates in the target frame are kept
+(a running mean over its first ``map_observations`` sightings), so that the x axis survives
+when the anchor leaves the view.
+
+Per frame, `TargetFrameTracker.update` returns a `PoseMeasurement`:
+
+- ``eq9`` (the paper): ring + one mapped landmark — the anchor if visible, else the mapped
+  landmark farthest from the ring axis, whose map azimuth gives the x axis.
+- ``landmarks`` (default): weighted least squares over SE(3) of the ring centre, ring normal
+  and every mapped landmark, each with its covariance (Gauss-Newton); covariance from the
+  normal equations. With no ring, the landmarks alone (>= 3) determine the pose.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from satpose.datasets.geometry import Rigid3, rotvec_to_matrix, skew
+from satpose.frontend.measurements import (
+    LandmarkKind,
+    LandmarkMeasurement,
+    PoseMeasurement,
+    PoseMethod,
+    RingMeasurement,
+)
+from satpose.frontend.stereo import (
+    GeometryFailure,
+    pose_covariance_ring_landmark,
+    pose_from_ring_landmark,
+    tangent_basis,
+)
+
+KIND_PRIORITY = {LandmarkKind.CORNER: 0, LandmarkKind.COMPONENT: 1, LandmarkKind.ORB: 2}
+
+
+@dataclass(frozen=True, kw_only=True)
+class PoseConfig:
+    """Per-frame pose settings.
+
+    Attributes:
+        method: ``landmarks`` (ring + all mapped landmarks, least squares) or ``eq9`` (seed
+            000: ring + one landmark).
+        map_observations: a landmark's target-frame coordinates are the mean of its first
+            this many sightings, then frozen (a frozen map cannot drift).
+        min_axis_distance_m: landmarks closer than this to the ring axis carry no usable
+            azimuth and are not used as the eq. 9 landmark.
+        map_sigma_m: standard deviation added to every mapped landmark's covariance for the
+            map's own error [m].
+        max_landmark_residual_sigma: landmarks whose residual exceeds this many standard
+            deviations are dropped as mismatches and the fit repeated.
+        min_landmarks_without_ring: landmarks needed for a pose when the ring is lost.
+    """
+
+    method: Literal["landmarks", "eq9"] = "landmarks"
+    map_observations: int = 5
+    min_axis_distance_m: float = 0.08
+    map_sigma_m: float = 0.003
+    max_landmark_residual_sigma: float = 5.0
+    min_landmarks_without_ring: int = 3
+
+
+@dataclass
+class _MapPoint:
+    kind: LandmarkKind
+    position: np.ndarray  # target frame [m]
+    count: int = 1
+
+
+@dataclass
+class TargetFrameTracker:
+    """Defines the target frame and measures the target's pose in it, frame after frame."""
+
+    config: PoseConfig = field(default_factory=PoseConfig)
+    anchor_id: int | None = None
+    map: dict[int, _MapPoint] = field(default_factory=dict)
+
+    def update(
+        self, ring: RingMeasurement | None, landmarks: Sequence[LandmarkMeasurement]
+    ) -> tuple[PoseMeasurement | None, str | None]:
+        """Pose of this frame and update the map. Returns ``(pose, None)`` or ``(None, reason)``."""
+        pts = [lm for lm in landmarks if lm.point_m is not None and lm.covariance is not None]
+        try:
+            if self.anchor_id is None:
+                pose = self._bootstrap(ring, pts)
+            elif self.config.method == "eq9":
+                pose = self._eq9(ring, pts)
+            else:
+                pose = self._least_squares(ring, pts)
+        except GeometryFailure as exc:
+            return None, f"pose: {exc}"
+        if pose is None:
+            if ring is None:
+                return None, "pose: no ring and too few mapped landmarks"
+            return None, "pose: no landmark with a 3-D point to fix the x axis"
+        self._update_map(pose.left_cam_from_target, pts)
+        return pose, None
+
+    # -- bootstrap ---------------------------------------------------------------------------
+
+    def _bootstrap(
+        self, ring: RingMeasurement | None, pts: list[LandmarkMeasurement]
+    ) -> PoseMeasurement | None:
+        if ring is None:
+            return None
+        usable = [lm for lm in pts if _axis_distance(ring, lm) >= self.config.min_axis_distance_m]
+        if not usable:
+            return None
+        anchor = min(usable, key=lambda lm: (KIND_PRIORITY[lm.kind], lm.track_id))
+        self.anchor_id = anchor.track_id
+        return self._pose_eq9(ring, anchor, azimuth=0.0)
+
+    # -- seed 000 eq. 9 ----------------------------------------------------------------------
+
+    def _pose_eq9(
+        self, ring: RingMeasurement, lm: LandmarkMeasurement, azimuth: float
+    ) -> PoseMeasurement:
+        assert lm.point_m is not None and lm.covariance is not None
+        T = pose_from_ring_landmark(ring.center_m, ring.normal, lm.point_m)
+        # The landmark sits at `azimuth` about z in the target frame: rotate x back onto it.
+        T = Rigid3(R=T.R @ rotvec_to_matrix(np.array([0.0, 0.0, -azimuth])), t=T.t)
+        cov = pose_covariance_ring_landmark(
+            ring.center_m, ring.normal, ring.covariance, lm.point_m, lm.covariance
+        )
+        # The covariance was computed in the landmark-aligned frame; rotate it into T's frame.
+        Rz = rotvec_to_matrix(np.array([0.0, 0.0, azimuth]))
+        A = np.zeros((6, 6))
+        A[:3, :3] = Rz
+        A[3:, 3:] = Rz
+        return PoseMeasurement(
+            left_cam_from_target=T, covariance=A @ cov @ A.T, method=PoseMethod.RING_LANDMARK
+        )
+
+    def _eq9(
+        self, ring: RingMeasurement | None, pts: list[LandmarkMeasurement]
+    ) -> PoseMeasurement | None:
+        if ring is None:
+            return None
+        mapped = [
+            lm
+            for lm in pts
+            if lm.track_id in self.map
+            and np.hypot(*self.map[lm.track_id].position[:2]) >= self.config.min_axis_distance_m
+        ]
+        if not mapped:
+            return None
+        anchor = [lm for lm in mapped if lm.track_id == self.anchor_id]
+        lm = (
+            anchor[0]
+            if anchor
+            else max(mapped, key=lambda m: np.hypot(*self.map[m.track_id].position[:2]))
+        )
+        p = self.map[lm.track_id].position
+        return self._pose_eq9(ring, lm, azimuth=math.atan2(p[1], p[0]))
+
+    # -- least squares -----------------------------------------------------------------------
+
+    def _least_squares(
+        self, ring: RingMeasurement | None, pts: list[LandmarkMeasurement]
+    ) -> PoseMeasurement | None:
+        mapped = [lm for lm in pts if lm.track_id in self.map]
+        if ring is None and len(mapped) < self.config.min_landmarks_without_ring:
+            return None
+        if ring is not None and not any(
+            np.hypot(*self.map[lm.track_id].position[:2]) >= self.config.min_axis_distance_m
+            for lm in mapped
+        ):
+            return None
+        init = self._initial_pose(ring, mapped)
+        for _ in range(3):  # drop gross mismatches, refit
+            T, info, res = _gauss_newton(init, ring, mapped, self.map, self.config.map_sigma_m)
+            bad = [
+                lm
+                for lm, r in zip(mapped, res, strict=True)
+                if r > self.config.max_landmark_residual_sigma
+            ]
+            if not bad or len(mapped) - len(bad) < (1 if ring is not None else 3):
+                break
+            mapped = [lm for lm in mapped if lm not in bad]
+            init = T
+        try:
+            cov = np.linalg.inv(info)
+        except np.linalg.LinAlgError:
+            raise GeometryFailure("the pose is not constrained") from None
+        method = PoseMethod.RING_LANDMARKS if ring is not None else PoseMethod.ORB
+        if ring is not None and all(lm.kind == LandmarkKind.ORB for lm in mapped):
+            method = PoseMethod.RING_ORB
+        return PoseMeasurement(
+            left_cam_from_target=T, covariance=0.5 * (cov + cov.T), method=method
+        )
+
+    def _initial_pose(
+        self, ring: RingMeasurement | None, mapped: list[LandmarkMeasurement]
+    ) -> Rigid3:
+        if ring is not None:
+            far = max(mapped, key=lambda m: np.hypot(*self.map[m.track_id].position[:2]))
+            p = self.map[far.track_id].position
+            return self._pose_eq9(ring, far, math.atan2(p[1], p[0])).left_cam_from_target
+        src = np.array([self.map[lm.track_id].position for lm in mapped])
+        dst = np.array([lm.point_m for lm in mapped])
+        return _umeyama(src, dst)
+
+    # -- map -----------------------------------------------------------------------------------
+
+    def _update_map(self, pose: Rigid3, pts: list[LandmarkMeasurement]) -> None:
+        target_from_cam = pose.inverse()
+        for lm in pts:
+            assert lm.point_m is not None
+            p = target_from_cam.apply(lm.point_m)
+            entry = self.map.get(lm.track_id)
+            if entry is None:
+                self.map[lm.track_id] = _MapPoint(kind=lm.kind, position=p)
+            elif entry.count < self.config.map_observations:
+                entry.position = (entry.position * entry.count + p) / (entry.count + 1)
+                entry.count += 1
+
+
+def _axis_distance(ring: RingMeasurement, lm: LandmarkMeasurement) -> float:
+    assert lm.point_m is not None
+    d = lm.point_m - ring.center_m
+    return float(np.linalg.norm(d - (d @ ring.normal) * ring.normal))
+
+
+def _umeyama(src: np.ndarray, dst: np.ndarray) -> Rigid3:
+    """Least-squares rigid transform with ``dst ~ R src + t`` (Arun/Umeyama, no scale)."""
+    ms, md = src.mean(axis=0), dst.mean(axis=0)
+    H = (src - ms).T @ (dst - md)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    if abs(np.linalg.det(R) - 1) > 1e-6:
+        raise GeometryFailure("degenerate landmark configuration")
+    return Rigid3(R=R, t=md - R @ ms)
+
+
+def _gauss_newton(
+    T: Rigid3,
+    ring: RingMeasurement | None,
+    mapped: list[LandmarkMeasurement],
+    world: dict[int, _MapPoint],
+    map_sigma: float,
+    iterations: int = 6,
+) -> tuple[Rigid3, np.ndarray, np.ndarray]:
+    """Weighted least squares on SE(3) (right perturbation ``T Exp([w, v])``).
+
+    Residuals: ring centre ``t - c`` (3, ring centre covariance), ring normal ``B^T R e_z``
+    with ``B`` a tangent basis of the measured normal (2, the normal covariance projected on
+    ``B``), landmark ``R p + t - X`` (3 each, triangulation + map covariance).
+
+    Returns:
+        (pose, information matrix 6x6, per-landmark Mahalanobis residual norms).
+    """
+    blocks: list[tuple[str, np.ndarray, np.ndarray]] = []
+    if ring is not None:
+        blocks.append(("centre", ring.center_m, np.linalg.inv(ring.covariance[:3, :3])))
+        B = np.c_[tangent_basis(ring.normal)]  # 3x2
+        Cn = B.T @ ring.covariance[3:6, 3:6] @ B
+        blocks.append(("normal", B, np.linalg.inv(Cn)))
+    for lm in mapped:
+        assert lm.point_m is not None and lm.covariance is not None
+        W = np.linalg.inv(lm.covariance + np.eye(3) * map_sigma**2)
+        blocks.append((f"lm{lm.track_id}", lm.point_m, W))
+    positions = {f"lm{lm.track_id}": world[lm.track_id].position for lm in mapped}
+    ez = np.array([0.0, 0.0, 1.0])
+    info = np.zeros((6, 6))
+    for _ in range(iterations):
+        H = np.zeros((6, 6))
+        g = np.zeros(6)
+        for name, obs, W in blocks:
+            if name == "centre":
+                r = T.t - obs
+                J = np.c_[np.zeros((3, 3)), T.R]
+            elif name == "normal":  # obs is the tangent basis B (3x2)
+                r = obs.T @ (T.R @ ez)
+                J = obs.T @ np.c_[-T.R @ skew(ez), np.zeros((3, 3))]
+            else:
+                p = positions[name]
+                r = T.R @ p + T.t - obs
+                J = np.c_[-T.R @ skew(p), T.R]
+            H += J.T @ W @ J
+            g += J.T @ W @ r
+        info = H
+        try:
+            dx = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            raise GeometryFailure("the pose is not constrained") from None
+        T = Rigid3(R=T.R @ rotvec_to_matrix(dx[:3]), t=T.t + T.R @ dx[3:])
+        if np.abs(dx).max() < 1e-10:
+            break
+    res = []
+    for lm in mapped:
+        assert lm.point_m is not None and lm.covariance is not None
+        r = T.R @ positions[f"lm{lm.track_id}"] + T.t - lm.point_m
+        W = np.linalg.inv(lm.covariance + np.eye(3) * map_sigma**2)
+        res.append(math.sqrt(float(r @ W @ r)))
+    return T, info, np.array(res)

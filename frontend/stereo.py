@@ -1,0 +1,432 @@
+"""Stereo geometry of seed 000: triangulation, the ring's 3-D circle from two image ellipses,
+and the per-frame pose — each with first-order covariances propagated from pixel noise.
+
+All pixels are undistorted pixels of the camera concerned; 3-D results are in the left camera
+frame. ``P_l = K_l [I | 0]``, ``P_r = K_r [R | t]`` with ``right_from_left = (R, t)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from satpose.datasets.errors import SatposeError
+from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix, skew
+from satpose.datasets.sequence import Calibration
+from satpose.frontend.conics import sampson_distance
+
+
+class GeometryFailure(SatposeError):
+    """A geometric reconstruction is impossible for these observations (degenerate input)."""
+
+
+@dataclass(frozen=True)
+class StereoRig:
+    """The undistorted stereo rig: intrinsics and ``right_from_left``."""
+
+    K_left: np.ndarray
+    K_right: np.ndarray
+    right_from_left: Rigid3
+
+    @staticmethod
+    def from_calibration(calib: Calibration) -> StereoRig:
+        if calib.right is None or calib.right_from_left is None:
+            raise GeometryFailure("a stereo rig needs a right camera and right_from_left")
+        return StereoRig(calib.left.K, calib.right.K, calib.right_from_left)
+
+    @property
+    def P_left(self) -> np.ndarray:
+        """3x4 projection matrix of the left camera."""
+        return self.K_left @ np.c_[np.eye(3), np.zeros(3)]
+
+    @property
+    def P_right(self) -> np.ndarray:
+        """3x4 projection matrix of the right camera (left-camera coordinates in)."""
+        return self.K_right @ np.c_[self.right_from_left.R, self.right_from_left.t]
+
+    def fundamental(self) -> np.ndarray:
+        """F with ``x_r^T F x_l = 0`` (seed 000 eq. 2), for undistorted pixels."""
+        R, t = self.right_from_left.R, self.right_from_left.t
+        return np.linalg.inv(self.K_right).T @ skew(t) @ R @ np.linalg.inv(self.K_left)
+
+    def epipolar_distance(self, left_px: np.ndarray, right_px: np.ndarray) -> np.ndarray:
+        """Distance [px] of right points (M, 2) from the epipolar lines of left points (N, 2),
+        shape (N, M) (seed 000 eq. 3: ``l_r = F p_l``)."""
+        F = self.fundamental()
+        lines = np.c_[left_px, np.ones(len(left_px))] @ F.T  # (N, 3)
+        lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
+        return np.abs(lines @ np.c_[right_px, np.ones(len(right_px))].T)
+
+    def project(self, points_left: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project left-frame points (N, 3) into both images: (N, 2), (N, 2)."""
+        X = np.asarray(points_left, float).reshape(-1, 3)
+        pl = X @ self.K_left.T
+        Xr = self.right_from_left.apply(X)
+        pr = Xr @ self.K_right.T
+        return pl[:, :2] / pl[:, 2:], pr[:, :2] / pr[:, 2:]
+
+
+def triangulate(
+    rig: StereoRig,
+    left_px: np.ndarray,
+    right_px: np.ndarray,
+    sigma_px: float | np.ndarray = 0.5,
+    refine: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Linear (DLT, seed 000 eqs. 4-5) triangulation, optionally refined to the minimum of the
+    reprojection error, with its covariance.
+
+    Args:
+        left_px, right_px: (N, 2) undistorted pixels.
+        sigma_px: pixel noise std per coordinate (scalar or (N,)).
+        refine: Gauss-Newton on the reprojection error after the DLT (2 iterations).
+
+    Returns:
+        points (N, 3) in the left frame [m], covariances (N, 3, 3) [m^2]. Points that cannot
+        be triangulated (parallel rays, behind a camera) are NaN with NaN covariance.
+    """
+    pl = np.asarray(left_px, float).reshape(-1, 2)
+    pr = np.asarray(right_px, float).reshape(-1, 2)
+    Pl, Pr = rig.P_left, rig.P_right
+    A = np.stack(
+        [
+            pl[:, :1] * Pl[2] - Pl[0],
+            pl[:, 1:] * Pl[2] - Pl[1],
+            pr[:, :1] * Pr[2] - Pr[0],
+            pr[:, 1:] * Pr[2] - Pr[1],
+        ],
+        axis=1,
+    )  # (N, 4, 4)
+    # Row-normalise (the DLT is not scale invariant); smallest right singular vector of A.
+    A = A / np.linalg.norm(A, axis=2, keepdims=True)
+    _, _, Vt = np.linalg.svd(A)
+    Xh = Vt[:, -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = Xh[:, :3] / Xh[:, 3:4]
+    sig = np.broadcast_to(np.asarray(sigma_px, float), (pl.shape[0],))
+    if refine:
+        for _ in range(2):
+            r, J = _reprojection(rig, X, pl, pr)
+            JtJ = np.einsum("nki,nkj->nij", J, J)
+            Jtr = np.einsum("nki,nk->ni", J, r)
+            ok = np.linalg.cond(JtJ) < 1e12
+            step = np.zeros_like(X)
+            step[ok] = -np.linalg.solve(JtJ[ok], Jtr[ok][..., None])[..., 0]
+            X = X + step
+    r, J = _reprojection(rig, X, pl, pr)
+    JtJ = np.einsum("nki,nkj->nij", J, J)
+    cov = np.full((pl.shape[0], 3, 3), np.nan)
+    Xr = rig.right_from_left.apply(X)
+    good = (np.linalg.cond(JtJ) < 1e12) & (X[:, 2] > 0) & (Xr[:, 2] > 0)
+    cov[good] = np.linalg.inv(JtJ[good]) * (sig[good] ** 2)[:, None, None]
+    X[~good] = np.nan
+    return X, cov
+
+
+def _reprojection(
+    rig: StereoRig, X: np.ndarray, pl: np.ndarray, pr: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (N, 4) and Jacobians (N, 4, 3) of the stereo reprojection of points X."""
+    R, t = rig.right_from_left.R, rig.right_from_left.t
+    res = np.empty((X.shape[0], 4))
+    J = np.empty((X.shape[0], 4, 3))
+    for k, (K, Rc, tc, p) in enumerate(
+        ((rig.K_left, np.eye(3), np.zeros(3), pl), (rig.K_right, R, t, pr))
+    ):
+        Xc = X @ Rc.T + tc
+        q = Xc @ K.T
+        z = q[:, 2:3]
+        res[:, 2 * k : 2 * k + 2] = q[:, :2] / z - p
+        # d(q_xy / q_z)/dX = (K_xy - (q_xy/q_z) K_z) Rc / q_z
+        KR = K @ Rc
+        J[:, 2 * k : 2 * k + 2, :] = (
+            KR[None, :2, :] - (q[:, :2] / z)[:, :, None] * KR[None, 2:3, :]
+        ) / z[:, :, None]
+    return res, J
+
+
+# --------------------------------------------------------------------------------------------
+# The ring: a 3-D circle from its image conics
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class Circle3D:
+    """A circle in the left camera frame: centre [m], unit normal (toward the cameras),
+    radius [m], and the 7x7 covariance of ``[center, normal, radius]`` (normal block rank 2)."""
+
+    center: np.ndarray
+    normal: np.ndarray
+    radius: float
+    covariance: np.ndarray
+
+
+def cone_circle_candidates(K: np.ndarray, conic: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The two circular sections of the elliptic cone through an image ellipse (seed 000 eq. 6).
+
+    Args:
+        K: 3x3 intrinsics (undistorted).
+        conic: 3x3 image conic of the ellipse.
+
+    Returns:
+        Two ``(normal, center_direction)`` pairs in this camera's frame: the unit plane normal
+        pointing toward the camera (``normal_z < 0``), and the unit direction of the circle's
+        centre (the centre is at ``(radius / s) * center_direction`` for a known radius, see
+        `circle_scale`).
+    """
+    S = K.T @ conic @ K  # the cone X^T S X = 0 (seed 000: S = K^T E K)
+    S = 0.5 * (S + S.T)
+    w, V = np.linalg.eigh(S)
+    # Normalise the sign so that two eigenvalues are positive and one negative.
+    if np.sum(w > 0) == 1:
+        w, V = -w[::-1], V[:, ::-1]
+    # Now w ascending: w[0] < 0 < w[1] <= w[2]. Seed 000 eq. 6 with l1 >= l2 > 0 > l3.
+    l3, l2, l1 = w
+    e3, e1 = V[:, 0], V[:, 2]
+    if not (l3 < 0 < l2 <= l1):
+        raise GeometryFailure("the ellipse's back-projected cone is not elliptic")
+    a = math.sqrt(max(l1 - l2, 0.0) / (l1 - l3))
+    b = math.sqrt(max(l2 - l3, 0.0) / (l1 - l3))
+    Sinv = np.linalg.inv(S)
+    out = []
+    for sign in (1.0, -1.0):
+        n = a * e1 + sign * b * e3
+        n /= np.linalg.norm(n)
+        c = Sinv @ n  # the centre of the section lies along S^-1 n (pole of the plane)
+        if c[2] < 0:
+            c = -c
+        if n @ c > 0:  # the plane normal faces the camera: n . X_c < 0
+            n = -n
+        out.append((n, c / np.linalg.norm(c)))
+    return out
+
+
+def circle_scale(
+    K: np.ndarray, conic: np.ndarray, normal: np.ndarray, center_dir: np.ndarray
+) -> float:
+    """Distance to the circle's centre per metre of radius for a candidate section, so that
+    ``center = radius * circle_scale(...) * center_dir``."""
+    S = K.T @ conic @ K
+    S = 0.5 * (S + S.T)
+    u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    mu = 0.5 * (u @ S @ u + v @ S @ v)  # isotropic on the circle's plane
+    # (s d)^T S (s d) + r^2 mu = 0 with r = 1  ->  s^2 = -mu / (d^T S d)
+    q = center_dir @ S @ center_dir
+    if q * mu >= 0:
+        raise GeometryFailure("inconsistent circular section")
+    return math.sqrt(-mu / q)
+
+
+def circle_from_stereo_conics(
+    rig: StereoRig, conic_left: np.ndarray, conic_right: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Seed 000 eqs. 6-8: the circle seen as ``conic_left`` and ``conic_right``.
+
+    Each view gives two candidate normals; the pair that agrees between the views (after
+    rotating the right one into the left frame) resolves the two-fold ambiguity; the centre's
+    image in each view (along ``S^-1 n``) is triangulated (eq. 8 + eqs. 4-5); the radius
+    follows from the left cone.
+
+    Returns:
+        ``(center [m], unit normal toward the cameras, radius [m])`` in the left frame.
+    """
+    R = rig.right_from_left.R
+    cl = cone_circle_candidates(rig.K_left, conic_left)
+    cr = cone_circle_candidates(rig.K_right, conic_right)
+    best = None
+    for nl, dl in cl:
+        for nr, dr in cr:
+            err = float(np.linalg.norm(nl - R.T @ nr))
+            if best is None or err < best[0]:
+                best = (err, nl, dl, nr, dr)
+    assert best is not None
+    _, nl, dl, nr, dr = best
+    normal = nl + R.T @ nr
+    normal /= np.linalg.norm(normal)
+    pl = (rig.K_left @ dl)[:2] / (rig.K_left @ dl)[2]
+    pr = (rig.K_right @ dr)[:2] / (rig.K_right @ dr)[2]
+    X, _ = triangulate(rig, pl[None], pr[None], refine=True)
+    center = X[0]
+    if not np.all(np.isfinite(center)):
+        raise GeometryFailure("the ring centre could not be triangulated")
+    # Radius: the left cone scaled to put the centre at the triangulated depth.
+    s = circle_scale(rig.K_left, conic_left, nl, dl)
+    radius = float(np.linalg.norm(center) / s)
+    return center, normal, radius
+
+
+def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors completing the unit ``n`` to a right-handed orthonormal basis."""
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    return u, np.cross(n, u)
+
+
+def _circle_conic(
+    K: np.ndarray, cam_from_left: Rigid3, center: np.ndarray, normal: np.ndarray, radius: float
+) -> np.ndarray:
+    """Image conic of a left-frame circle in a camera ``cam_from_left`` with intrinsics K."""
+    u, v = tangent_basis(normal)
+    c = cam_from_left.apply(center)
+    H = K @ np.c_[cam_from_left.rotate(u) * radius, cam_from_left.rotate(v) * radius, c]
+    Hinv = np.linalg.inv(H)
+    C = Hinv.T @ np.diag([1.0, 1.0, -1.0]) @ Hinv
+    return C / np.linalg.norm(C)
+
+
+def refine_circle(
+    rig: StereoRig,
+    center: np.ndarray,
+    normal: np.ndarray,
+    radius: float,
+    left_points: np.ndarray,
+    right_points: np.ndarray,
+    sigma_px: float | None = None,
+    iterations: int = 8,
+) -> Circle3D:
+    """Fit a 3-D circle to the sub-pixel edge points of both images (Gauss-Newton on the
+    points' first-order geometric distances to the projected circle), with covariance.
+
+    This is the tightly coupled version of eqs. 6-8: both views constrain centre, normal and
+    radius at once, instead of averaging per-view normals.
+
+    Args:
+        left_points, right_points: (N, 2) / (M, 2) undistorted edge points of the ring's
+            outer front edge in each image.
+        sigma_px: edge point noise; estimated from the residuals if None.
+    """
+    cams = [
+        (rig.K_left, Rigid3.identity(), np.asarray(left_points, float)),
+        (rig.K_right, rig.right_from_left, np.asarray(right_points, float)),
+    ]
+    n_pts = sum(len(p) for _, _, p in cams)
+    if n_pts < 12:
+        raise GeometryFailure(f"too few ring edge points to fit a circle ({n_pts})")
+
+    def residuals(c: np.ndarray, n: np.ndarray, r: float) -> np.ndarray:
+        return np.concatenate(
+            [sampson_distance(p, _circle_conic(K, T, c, n, r)) for K, T, p in cams]
+        )
+
+    def unpack(
+        x: np.ndarray, c0: np.ndarray, n0: np.ndarray, r0: float
+    ) -> tuple[np.ndarray, np.ndarray, float]:
+        u, v = tangent_basis(n0)
+        n = n0 + x[3] * u + x[4] * v
+        return c0 + x[:3], n / np.linalg.norm(n), r0 * math.exp(x[5])
+
+    c, n, r = np.asarray(center, float), np.asarray(normal, float), float(radius)
+    steps = np.array([1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
+    for _ in range(iterations):
+        r0 = residuals(c, n, r)
+        J = np.empty((r0.size, 6))
+        for k in range(6):
+            dx = np.zeros(6)
+            dx[k] = steps[k]
+            J[:, k] = (residuals(*unpack(dx, c, n, r)) - residuals(*unpack(-dx, c, n, r))) / (
+                2 * steps[k]
+            )
+        step = np.linalg.lstsq(J, -r0, rcond=None)[0]
+        c, n, r = unpack(step, c, n, r)
+        if np.abs(step[:3]).max() < 1e-8 and np.abs(step[3:]).max() < 1e-9:
+            break
+    res = residuals(c, n, r)
+    J = np.empty((res.size, 6))
+    for k in range(6):
+        dx = np.zeros(6)
+        dx[k] = steps[k]
+        J[:, k] = (residuals(*unpack(dx, c, n, r)) - residuals(*unpack(-dx, c, n, r))) / (
+            2 * steps[k]
+        )
+    s2 = sigma_px**2 if sigma_px is not None else float(res @ res) / max(res.size - 6, 1)
+    try:
+        cov6 = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        raise GeometryFailure("the ring circle is not constrained by its edge points") from None
+    # Map the local parameters [dc, du, dv, dlog r] to [center, normal, radius].
+    u, v = tangent_basis(n)
+    G = np.zeros((7, 6))
+    G[:3, :3] = np.eye(3)
+    G[3:6, 3] = u
+    G[3:6, 4] = v
+    G[6, 5] = r
+    cov7 = G @ cov6 @ G.T
+    if n @ c > 0:
+        n = -n
+    return Circle3D(center=c, normal=n, radius=r, covariance=0.5 * (cov7 + cov7.T))
+
+
+# --------------------------------------------------------------------------------------------
+# Per-frame pose
+# --------------------------------------------------------------------------------------------
+
+
+def pose_from_ring_landmark(center: np.ndarray, normal: np.ndarray, landmark: np.ndarray) -> Rigid3:
+    """Seed 000 eq. 9: z = ring normal, x toward the landmark, y = z x x, t = ring centre.
+
+    The landmark direction is projected onto the ring plane so that the rotation is exactly
+    orthonormal (the paper takes it as is; a landmark off the ring plane tilts x otherwise).
+    """
+    z = np.asarray(normal, float) / np.linalg.norm(normal)
+    d = np.asarray(landmark, float) - center
+    x = d - (d @ z) * z
+    nx = np.linalg.norm(x)
+    if nx < 1e-6:
+        raise GeometryFailure("the landmark lies on the ring axis: x is undefined")
+    x /= nx
+    return Rigid3(R=np.c_[x, np.cross(z, x), z], t=np.asarray(center, float))
+
+
+def pose_tangent_error(a: Rigid3, b: Rigid3) -> np.ndarray:
+    """``Log(a^-1 b)`` as ``[rotation, translation]`` (6,), the right-perturbation difference
+    used by the covariances (translation part in a's frame)."""
+    d = a.inverse() @ b
+    return np.concatenate([matrix_to_rotvec(d.R), d.t])
+
+
+def propagate(
+    fn: Callable[[np.ndarray], Rigid3], x0: np.ndarray, cov_x: np.ndarray, steps: np.ndarray
+) -> np.ndarray:
+    """First-order covariance (6x6, [rot, trans]) of a pose ``fn(x)`` for input covariance
+    ``cov_x`` at ``x0``, by central differences with per-input ``steps``."""
+    T0 = fn(x0)
+    J = np.empty((6, x0.size))
+    for k in range(x0.size):
+        dx = np.zeros(x0.size)
+        dx[k] = steps[k]
+        J[:, k] = (pose_tangent_error(T0, fn(x0 + dx)) - pose_tangent_error(T0, fn(x0 - dx))) / (
+            2 * steps[k]
+        )
+    C = J @ cov_x @ J.T
+    return 0.5 * (C + C.T)
+
+
+def pose_covariance_ring_landmark(
+    center: np.ndarray,
+    normal: np.ndarray,
+    ring_cov: np.ndarray,
+    landmark: np.ndarray,
+    landmark_cov: np.ndarray,
+) -> np.ndarray:
+    """Covariance (6x6, [rot, trans]) of `pose_from_ring_landmark` from the ring's 7x7 and the
+    landmark's 3x3 covariances (first order)."""
+
+    def fn(x: np.ndarray) -> Rigid3:
+        return pose_from_ring_landmark(x[:3], x[3:6] / np.linalg.norm(x[3:6]), x[7:10])
+
+    x0 = np.concatenate([center, normal, [0.0], landmark])
+    cov = np.zeros((10, 10))
+    cov[:7, :7] = ring_cov
+    cov[7:, 7:] = landmark_cov
+    C = propagate(fn, x0, cov, np.full(10, 1e-6))
+    return C + np.eye(6) * 1e-12  # keep it strictly positive definite
+
+
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation matrix of ``angle`` [rad] about the unit ``axis``."""
+    return rotvec_to_matrix(np.asarray(axis, float) * angle)

@@ -1,0 +1,126 @@
+"""Per-frame pose and the target frame (`TargetFrameTracker`) on simulated measurements."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from satpose.datasets.geometry import rotation_angle
+from satpose.datasets.scenarios import preset, trajectory
+from satpose.datasets.target import geometry
+from satpose.frontend.measurements import PoseMethod
+from satpose.frontend.pose import PoseConfig
+from satpose.frontend.simulate import (
+    SimulationConfig,
+    make_tracker,
+    simulate_frame,
+    simulate_measurements,
+)
+from satpose.frontend.stereo import pose_tangent_error
+
+
+def _run(name: str, config: SimulationConfig, seed: int = 0, frames: int | None = None):  # type: ignore[no-untyped-def]
+    s = preset(name)
+    tr = trajectory(s if frames is None else replace(s, frames=frames))
+    ms = simulate_measurements(
+        tr.left_cam_from_target, tr.t_s, s.rig.calibration(), geometry(s.target), config, seed=seed
+    )
+    return ms, tr.left_cam_from_target
+
+
+@pytest.mark.parametrize("method", ["landmarks", "eq9"])
+def test_pose_nees_is_consistent(method: str) -> None:
+    ms, truth = _run("paper-docking", SimulationConfig(pose=PoseConfig(method=method)), seed=2)
+    nees = []
+    for m, T in zip(ms, truth, strict=True):
+        assert m.pose is not None
+        e = pose_tangent_error(m.pose.left_cam_from_target, T)
+        nees.append(e @ np.linalg.solve(m.pose.covariance, e))
+    # chi2(6) mean 6; the map noise term (map_sigma_m) makes it conservative, never optimistic.
+    lo, hi = 6 - 3 * np.sqrt(12 / len(nees)) - 2.0, 6 + 3 * np.sqrt(12 / len(nees))
+    assert lo < np.mean(nees) < hi, np.mean(nees)
+
+
+def test_least_squares_beats_eq9_in_rotation() -> None:
+    errs = {}
+    for method in ("landmarks", "eq9"):
+        ms, truth = _run("tumble", SimulationConfig(pose=PoseConfig(method=method)), seed=5)
+        errs[method] = np.mean(
+            [
+                np.degrees(rotation_angle(m.pose.left_cam_from_target.R.T @ T.R))
+                for m, T in zip(ms, truth, strict=True)
+            ]
+        )
+    assert errs["landmarks"] < 0.7 * errs["eq9"], errs
+
+
+def test_bootstrap_frame_is_x_toward_the_anchor_corner() -> None:
+    # Noise-free-ish bootstrap: the estimator's frame equals the truth frame (x to corner 0).
+    cfg = SimulationConfig(sigma_px=1e-4, frame="bootstrap")
+    ms, truth = _run("paper-docking", cfg, frames=5)
+    for m, T in zip(ms, truth, strict=True):
+        assert m.pose is not None
+        assert rotation_angle(m.pose.left_cam_from_target.R.T @ T.R) < 1e-4
+        assert np.linalg.norm(m.pose.left_cam_from_target.t - T.t) < 1e-4
+
+
+def test_pose_survives_losing_the_anchor_and_the_ring() -> None:
+    s = preset("paper-docking")
+    tr = trajectory(replace(s, frames=6))
+    g = geometry(s.target)
+    calib = s.rig.calibration()
+    cfg = SimulationConfig(sigma_px=0.2, frame="bootstrap")
+    tracker = make_tracker(g, cfg)
+    rng = np.random.default_rng(0)
+    for k in range(3):  # map everything while all is visible
+        simulate_frame(k, tr.t_s[k], tr.left_cam_from_target[k], calib, g, tracker, cfg, rng)
+    # Anchor (corner 0) gone: the other mapped landmarks keep the same x axis.
+    m = simulate_frame(
+        3,
+        tr.t_s[3],
+        tr.left_cam_from_target[3],
+        calib,
+        g,
+        tracker,
+        replace(cfg, hidden_track_ids=(0,)),
+        rng,
+    )
+    assert 0 not in [lm.track_id for lm in m.landmarks]
+    assert m.pose is not None and m.pose.method == PoseMethod.RING_LANDMARKS
+    assert (
+        np.degrees(rotation_angle(m.pose.left_cam_from_target.R.T @ tr.left_cam_from_target[3].R))
+        < 0.5
+    )
+    # Ring gone too: landmarks alone (>= 3) still give a pose, flagged as such.
+    m = simulate_frame(
+        4, tr.t_s[4], tr.left_cam_from_target[4], calib, replace(g, ring=None), tracker, cfg, rng
+    )
+    assert m.pose is not None and m.pose.method == PoseMethod.ORB
+    assert np.linalg.norm(m.pose.left_cam_from_target.t - tr.left_cam_from_target[4].t) < 0.02
+
+
+def test_no_landmarks_gives_a_reason_not_an_exception() -> None:
+    s = preset("paper-docking")
+    tr = trajectory(replace(s, frames=1))
+    g = geometry(s.target)
+    cfg = SimulationConfig(corners=False, components=False, frame="bootstrap")
+    m = simulate_frame(
+        0,
+        0.0,
+        tr.left_cam_from_target[0],
+        s.rig.calibration(),
+        g,
+        make_tracker(g, cfg),
+        cfg,
+        np.random.default_rng(0),
+    )
+    assert m.pose is None and m.ring is not None
+    assert any("x axis" in f for f in m.failures)
+
+
+def test_dropout_frames_are_empty() -> None:
+    ms, _ = _run("paper-docking", SimulationConfig(dropout_frames=(2,)), frames=4)
+    assert ms[2].ring is None and ms[2].pose is None and ms[2].failures == ("simulated dropout",)
+    assert ms[3].pose is not None
