@@ -361,6 +361,29 @@ def refine_circle(
     return Circle3D(center=c, normal=n, radius=r, covariance=0.5 * (cov7 + cov7.T))
 
 
+def circle_rms(
+    rig: StereoRig, circle: Circle3D, left_points: np.ndarray, right_points: np.ndarray
+) -> float:
+    """RMS first-order distance [px] of both images' edge points to the circle's images."""
+    r = np.concatenate(
+        [
+            sampson_distance(
+                left_points,
+                _circle_conic(
+                    rig.K_left, Rigid3.identity(), circle.center, circle.normal, circle.radius
+                ),
+            ),
+            sampson_distance(
+                right_points,
+                _circle_conic(
+                    rig.K_right, rig.right_from_left, circle.center, circle.normal, circle.radius
+                ),
+            ),
+        ]
+    )
+    return float(np.sqrt(np.mean(r**2)))
+
+
 # --------------------------------------------------------------------------------------------
 # Per-frame pose
 # --------------------------------------------------------------------------------------------

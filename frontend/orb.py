@@ -1,0 +1,254 @@
+"""Close range (seed 000, section 4.2): ORB features on the target as landmarks.
+
+When the panel corners and components leave the view, ORB features of the target are matched
+between the stereo images (brute-force Hamming, then the epipolar and depth gates of
+`satpose.frontend.landmarks`) and triangulated; matched frame to frame by descriptor near
+their predicted positions, they keep track ids. With a map of their target-frame positions
+(`TargetFrameTracker`), EPnP + RANSAC on the left image gives a pose ``R', t'`` that rejects
+mismatches and, fused with the ring (eq. 10), the paper's close-range pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
+from satpose.frontend.conics import Ellipse
+from satpose.frontend.landmarks import LandmarkConfig
+from satpose.frontend.measurements import LandmarkKind, LandmarkMeasurement
+from satpose.frontend.stereo import StereoRig, triangulate
+
+ORB_FIRST_ID = 1_000_000
+"""ORB track ids start here, apart from corner and component ids."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class OrbConfig:
+    """ORB landmarks.
+
+    Attributes:
+        use_below_range_m: ORB runs when the ring is closer than this (the paper's s1) ...
+        min_other_landmarks: ... or when fewer corner/component landmarks than this are seen.
+        features: ORB features per image.
+        max_extent: features are taken within this many ring semi-major axes of the ring
+            centre, on the lit target, and outside the ring's rim (whose symmetric edges
+            match anywhere along it).
+        max_hamming: largest descriptor distance of a match.
+        ratio: Lowe's ratio test between the best and second-best temporal match.
+        gate_px: a temporal match must land within this distance of its predicted position.
+        ransac_px, min_inliers: EPnP + RANSAC reprojection threshold and minimum inliers.
+        landmarks: stereo pairing settings.
+    """
+
+    use_below_range_m: float = 3.5
+    min_other_landmarks: int = 3
+    features: int = 800
+    max_extent: float = 4.0
+    max_hamming: int = 48
+    ratio: float = 0.8
+    gate_px: float = 20.0
+    ransac_px: float = 2.0
+    min_inliers: int = 8
+    landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
+
+
+@dataclass
+class _OrbTrack:
+    track_id: int
+    descriptor: np.ndarray
+    left: np.ndarray
+
+
+class OrbTracker:
+    """ORB features of the target, stereo-triangulated, with track ids across frames."""
+
+    def __init__(self, rig: StereoRig, config: OrbConfig | None = None) -> None:
+        self.rig = rig
+        self.config = config or OrbConfig()
+        self.orb = cv2.ORB_create(
+            nfeatures=self.config.features,
+            scaleFactor=1.2,
+            nlevels=6,
+            edgeThreshold=15,
+            patchSize=21,
+            fastThreshold=12,
+        )
+        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self.tracks: list[_OrbTrack] = []
+        self._next_id = ORB_FIRST_ID
+
+    def reset(self) -> None:
+        self.tracks = []
+
+    def _mask(self, gray8: np.ndarray, ring: Ellipse | None) -> np.ndarray:
+        mask = (gray8 > 8).astype(np.uint8) * 255
+        if ring is not None:
+            roi = np.zeros_like(mask)
+            R = self.config.max_extent * ring.a
+            cv2.circle(roi, (int(ring.cx), int(ring.cy)), int(R), 255, -1)
+            cv2.ellipse(
+                roi,
+                (int(ring.cx), int(ring.cy)),
+                (int(ring.a * 1.15), int(ring.b * 1.15)),
+                float(np.degrees(ring.theta)),
+                0,
+                360,
+                0,
+                -1,
+            )
+            mask &= roi
+        return mask
+
+    def update(
+        self,
+        left8: np.ndarray,
+        right8: np.ndarray,
+        ring_left: Ellipse | None,
+        ring_right: Ellipse | None,
+        ring_depth_m: float | None,
+        predicted: dict[int, np.ndarray] | None = None,
+    ) -> list[LandmarkMeasurement]:
+        """ORB landmarks of this frame.
+
+        Args:
+            ring_left, ring_right: the ring ellipses (feature masks), if found.
+            ring_depth_m: the ring's depth (stereo depth gate).
+            predicted: optional ``{track_id: left px}`` expected positions of existing tracks.
+        """
+        cfg = self.config
+        kl, dl = self.orb.detectAndCompute(left8, self._mask(left8, ring_left))
+        kr, dr = self.orb.detectAndCompute(right8, self._mask(right8, ring_right))
+        if dl is None or dr is None or len(kl) < 4 or len(kr) < 4:
+            self.tracks = []
+            return []
+        pl = np.array([k.pt for k in kl])
+        pr = np.array([k.pt for k in kr])
+        # Stereo: mutual best Hamming matches, then the epipolar/depth gates.
+        matches = self.matcher.match(dl, dr)
+        good = [m for m in matches if m.distance <= cfg.max_hamming]
+        if not good:
+            self.tracks = []
+            return []
+        li = np.array([m.queryIdx for m in good])
+        ri = np.array([m.trainIdx for m in good])
+        epi = _epipolar_distance(self.rig, pl[li], pr[ri])
+        X0, _ = triangulate(self.rig, pl[li], pr[ri], refine=False)
+        z = X0[:, 2]
+        lm = cfg.landmarks
+        ok = (
+            (epi < lm.max_epipolar_px)
+            & np.isfinite(z)
+            & (z > lm.min_depth_m)
+            & (z < lm.max_depth_m)
+        )
+        if ring_depth_m is not None:
+            ok &= np.abs(z - ring_depth_m) < lm.max_depth_offset_m
+        idx_l, idx_r = li[ok], ri[ok]
+        if idx_l.size == 0:
+            self.tracks = []
+            return []
+        ids = self._associate(dl[idx_l], pl[idx_l], predicted)
+        sigma = cfg.landmarks.sigma_px["orb"]
+        X, cov = triangulate(self.rig, pl[idx_l], pr[idx_r], sigma_px=sigma)
+        out = []
+        new_tracks = []
+        for k in range(idx_l.size):
+            if not np.all(np.isfinite(X[k])):
+                continue
+            out.append(
+                LandmarkMeasurement(
+                    track_id=ids[k],
+                    kind=LandmarkKind.ORB,
+                    left_px=pl[idx_l[k]],
+                    right_px=pr[idx_r[k]],
+                    sigma_px=sigma,
+                    point_m=X[k],
+                    covariance=cov[k],
+                )
+            )
+            new_tracks.append(
+                _OrbTrack(track_id=ids[k], descriptor=dl[idx_l[k]], left=pl[idx_l[k]])
+            )
+        self.tracks = new_tracks
+        return out
+
+    def _associate(
+        self, desc: np.ndarray, pts: np.ndarray, predicted: dict[int, np.ndarray] | None
+    ) -> list[int]:
+        """Track id per current feature: the previous frame's feature with the closest
+        descriptor (ratio test) near its predicted position, else a new id."""
+        cfg = self.config
+        ids = [-1] * len(desc)
+        if self.tracks:
+            prev_desc = np.array([t.descriptor for t in self.tracks])
+            prev_pos = np.array(
+                [
+                    predicted[t.track_id] if predicted and t.track_id in predicted else t.left
+                    for t in self.tracks
+                ]
+            )
+            knn = self.matcher.knnMatch(desc, prev_desc, k=2)
+            taken: set[int] = set()
+            for q, ms in enumerate(knn):
+                if not ms:
+                    continue
+                best = ms[0]
+                if len(ms) > 1 and best.distance > cfg.ratio * ms[1].distance:
+                    continue
+                if best.distance > cfg.max_hamming or best.trainIdx in taken:
+                    continue
+                if np.linalg.norm(prev_pos[best.trainIdx] - pts[q]) > cfg.gate_px:
+                    continue
+                taken.add(best.trainIdx)
+                ids[q] = self.tracks[best.trainIdx].track_id
+        for q in range(len(ids)):
+            if ids[q] < 0:
+                ids[q] = self._next_id
+                self._next_id += 1
+        return ids
+
+
+def epnp_ransac(
+    K: np.ndarray, points_target: np.ndarray, pixels: np.ndarray, config: OrbConfig
+) -> tuple[Rigid3, np.ndarray] | None:
+    """EPnP + RANSAC (seed 000: ``R', t'``) of target-frame points (N, 3) seen at undistorted
+    left pixels (N, 2). Returns ``(left_cam_from_target, inlier mask)`` or None."""
+    if len(points_target) < max(6, config.min_inliers):
+        return None
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        points_target.astype(np.float64),
+        pixels.astype(np.float64),
+        K,
+        None,
+        flags=cv2.SOLVEPNP_EPNP,
+        reprojectionError=config.ransac_px,
+        iterationsCount=200,
+        confidence=0.999,
+    )
+    if not ok or inliers is None or len(inliers) < config.min_inliers:
+        return None
+    mask = np.zeros(len(points_target), bool)
+    mask[inliers.reshape(-1)] = True
+    return Rigid3(R=rotvec_to_matrix(rvec.reshape(3)), t=tvec.reshape(3)), mask
+
+
+def pose_eq10(center: np.ndarray, normal: np.ndarray, pnp: Rigid3) -> Rigid3:
+    """Seed 000 eq. 10: x = x', z = normalised(n_c + z'), y = z x x, t = (X_c + t') / 2
+    (x re-orthogonalised against the fused z)."""
+    x = pnp.R[:, 0]
+    z = normal + pnp.R[:, 2]
+    z /= np.linalg.norm(z)
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    return Rigid3(R=np.c_[x, np.cross(z, x), z], t=0.5 * (center + pnp.t))
+
+
+def _epipolar_distance(rig: StereoRig, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """Distance [px] of each right point from the epipolar line of its own left point."""
+    F = rig.fundamental()
+    lines = np.c_[left, np.ones(len(left))] @ F.T
+    lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
+    return np.abs(np.einsum("ij,ij->i", lines, np.c_[right, np.ones(len(right))]))

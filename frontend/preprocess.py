@@ -1,0 +1,106 @@
+"""Image preparation: grey float images with lens distortion removed, and quality checks.
+
+Everything downstream works on undistorted ("ideal") images of each camera with calib.yaml's
+own ``K`` (no rectification): straight panel edges stay straight, the ring stays an exact
+ellipse, and a pixel maps through ``K`` alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from satpose.datasets.camera import PinholeCamera
+from satpose.datasets.errors import SatposeError
+
+
+class ImageError(SatposeError):
+    """An image cannot be used at all (wrong shape or type)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class PreprocessConfig:
+    """Image checks.
+
+    Attributes:
+        dark_level: an image whose 99.5th percentile is below this (fraction of full scale)
+            is "too dark": nothing is detected in it.
+        saturated_fraction: an image with more than this fraction of saturated pixels is
+            "saturated": nothing is detected in it.
+    """
+
+    dark_level: float = 0.02
+    saturated_fraction: float = 0.5
+
+
+@dataclass(frozen=True)
+class PreparedImage:
+    """One camera's image ready for detection.
+
+    Attributes:
+        gray: (H, W) float32 in [0, 1], undistorted.
+        gray8: the same as uint8 (for OpenCV functions that need 8-bit input).
+        problem: why the image is unusable (``"too dark"``, ``"saturated"``), or None.
+    """
+
+    gray: np.ndarray
+    gray8: np.ndarray
+    problem: str | None
+
+
+class Undistorter:
+    """Removes one camera's lens distortion (maps computed once)."""
+
+    def __init__(self, camera: PinholeCamera, config: PreprocessConfig | None = None) -> None:
+        self.camera = camera
+        self.config = config or PreprocessConfig()
+        if camera.has_distortion:
+            self._maps: tuple[np.ndarray, np.ndarray] | None = cv2.initUndistortRectifyMap(
+                camera.K, camera.dist, None, camera.K, camera.size, cv2.CV_32FC1
+            )
+        else:
+            self._maps = None
+
+    def __call__(self, image: np.ndarray) -> PreparedImage:
+        """Grey, [0, 1], undistorted. Accepts (H, W) or (H, W, 3) BGR, uint8 or uint16."""
+        img = np.asarray(image)
+        if img.ndim not in (2, 3) or img.shape[:2] != (self.camera.height, self.camera.width):
+            raise ImageError(
+                f"image of shape {img.shape} does not match the camera "
+                f"({self.camera.width}x{self.camera.height})"
+            )
+        if img.dtype == np.uint8:
+            scale = 1 / 255.0
+        elif img.dtype == np.uint16:
+            scale = 1 / 65535.0
+        elif np.issubdtype(img.dtype, np.floating):
+            scale = 1.0
+            img = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)
+        else:
+            raise ImageError(f"unsupported pixel type {img.dtype}")
+        if img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        gray = img.astype(np.float32) * np.float32(scale)
+        if self._maps is not None:
+            gray = cv2.remap(
+                gray,
+                self._maps[0],
+                self._maps[1],
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0.0,
+            )
+        problem = None
+        if float(np.percentile(gray, 99.5)) < self.config.dark_level:
+            problem = "too dark"
+        elif float(np.mean(gray >= 0.995)) > self.config.saturated_fraction:
+            problem = "saturated"
+        gray8 = np.clip(gray * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        return PreparedImage(gray, gray8, problem)
+
+    def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
+        """Raw (distorted) pixels (N, 2) to undistorted pixels (N, 2)."""
+        xy = self.camera.undistort_points(pixels)
+        return self.camera.normalized_to_pixels(xy, distort=False)
