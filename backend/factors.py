@@ -1,30 +1,33 @@
 """Measurement factors: one function per measurement type of `satpose.frontend.measurements`.
 
-Every factor acts on ``X(i) = left_cam_from_target`` (right perturbation, [rotation,
-translation] tangent, see `satpose.backend.pose3`) and carries the noise the frontend reports,
-optionally inside a robust kernel (`MeasurementConfig.robust`).
+Every factor acts on the graph's pose variable ``X(i) = target_from_left_cam = T^-1`` (``T =
+left_cam_from_target``; right perturbation, [rotation, translation] tangent, see
+`satpose.backend.pose3`) and carries the noise the frontend reports, optionally inside a robust
+kernel (`MeasurementConfig.robust`).
 
 Loosely coupled (``coupling = "loose"``):
 
-- `pose_factor`: the per-frame pose (seed 000 eq. 9/10 or the frontend's least squares),
-  ``e = Log(T_meas^-1 T)`` (6,), covariance = `PoseMeasurement.covariance`. GTSAM's C++
-  ``PriorFactorPose3``.
+- `pose_factor`: the per-frame pose (seed 000 eq. 9/10 or the frontend's least squares):
+  ``e = Log(X_meas^-1 X)`` with ``X_meas = T_meas^-1`` and the measurement covariance mapped by
+  ``Ad(T_meas)`` (`pose3.pose_covariance_to_state`). GTSAM's C++ ``PriorFactorPose3``.
 
-Tightly coupled (``coupling = "tight"``), Python `gtsam.CustomFactor`s with analytic Jacobians:
+Tightly coupled (``coupling = "tight"``):
 
-- `ring_factor`: the ring's 3-D circle (fitted by the frontend to the edge points of both
-  images): ``e = [t - c ; B^T R e_z ; rho - r]`` (6,) with ``c``, ``n``, ``r`` the measured
-  centre, normal and radius, ``B`` (3x2) a tangent basis of ``n`` and ``rho`` the ring radius
-  variable shared by all frames (``R(0)``). The target origin is the ring centre and its z
-  axis the ring normal, so the factor also fixes five of the six gauge freedoms. Covariance:
-  the frontend's 7x7 ``[centre, normal, radius]`` covariance with the normal block projected
-  on ``B``. Sharing the radius is what a factor on the two image conics would add over
-  independent per-frame circles (scale from the apparent ring size); the per-frame circle is
-  the Gauss-Newton summary of the edge points, so the information is the same to first order.
-- `landmark_factor`: a tracked point ``p = L(j)`` (target frame, a variable) observed in the
-  undistorted left (and right) image: ``e = [pi(K_l (R p + t)) - u_l ; pi(K_r (R_rl (R p + t)
-  + t_rl)) - u_r]`` (4,) or the left half only (2,), isotropic ``sigma_px``.
-- `gauge_factor`: the last gauge freedom (rotation about the ring normal): the anchor
+- `ring_factor` (Python `gtsam.CustomFactor`, analytic Jacobians): the ring's 3-D circle,
+  fitted by the frontend to the edge points of both images: ``e = [t - c ; B^T R e_z ;
+  rho - r]`` (6,) where ``(R, t) = T``, ``c``, ``n``, ``r`` are the measured centre, normal and
+  radius, ``B`` (3x2) a tangent basis of ``n``, and ``rho`` the ring-radius variable shared by
+  all frames (``R(0)``). The target origin is the ring centre and its z axis the ring normal,
+  so this factor also fixes five of the six gauge freedoms. Covariance: the frontend's 7x7
+  ``[centre, normal, radius]`` covariance with the normal block projected on ``B``. Sharing
+  the radius is what a factor on the two image conics adds over independent per-frame
+  circles (the ring's apparent size fixes depth); the per-frame circle is the Gauss-Newton
+  summary of the edge points, so the information is the same to first order.
+- `landmark_factors`: a tracked point ``p = L(j)`` (target frame, a variable) observed in the
+  undistorted left and right images: two GTSAM C++ ``GenericProjectionFactorCal3_S2`` on
+  ``(X(i), L(j))`` (the right one with ``body_P_sensor = left_from_right``; the rig is not
+  rectified, so ``GenericStereoFactor3D`` does not apply), isotropic ``sigma_px``.
+- `gauge_factor` (Python): the last gauge freedom (rotation about the ring normal): the anchor
   landmark has ``y = 0`` in the target frame (x toward the anchor projected on the ring plane,
   as the frontend's `TargetFrameTracker` defines it).
 """
@@ -33,7 +36,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import gtsam
@@ -42,7 +45,14 @@ from scipy.stats import chi2
 
 from satpose.backend.errors import BackendError
 from satpose.backend.keys import RADIUS, L, X
-from satpose.backend.pose3 import ROT, TRANS, gaussian, to_pose3
+from satpose.backend.pose3 import (
+    ROT,
+    TRANS,
+    gaussian,
+    pose_covariance_to_state,
+    to_pose3,
+    to_state,
+)
 from satpose.datasets.geometry import Rigid3, skew
 from satpose.datasets.sequence import Calibration
 from satpose.frontend.measurements import (
@@ -117,20 +127,22 @@ class FactorClock:
 
 @dataclass(frozen=True)
 class StereoRig:
-    """The undistorted rig: left intrinsics, optional right intrinsics and ``right_from_left``."""
+    """The undistorted rig in GTSAM's terms: left (and right) ``Cal3_S2`` and the right camera's
+    pose in the left camera frame (``left_from_right``)."""
 
-    K_left: np.ndarray
-    K_right: np.ndarray | None = None
-    right_from_left: Rigid3 | None = field(default=None)
+    cal_left: gtsam.Cal3_S2
+    cal_right: gtsam.Cal3_S2 | None = None
+    left_from_right: gtsam.Pose3 | None = None
 
     @staticmethod
     def from_calibration(calib: Calibration) -> StereoRig:
+        def cal(K: np.ndarray) -> gtsam.Cal3_S2:
+            return gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2])
+
         if calib.right is None or calib.right_from_left is None:
-            return StereoRig(np.asarray(calib.left.K, float))
+            return StereoRig(cal(calib.left.K))
         return StereoRig(
-            np.asarray(calib.left.K, float),
-            np.asarray(calib.right.K, float),
-            calib.right_from_left,
+            cal(calib.left.K), cal(calib.right.K), to_pose3(calib.right_from_left.inverse())
         )
 
 
@@ -153,10 +165,10 @@ def robust(noise: gtsam.noiseModel.Base, dim: int, config: MeasurementConfig) ->
 
 
 def pose_factor(m: PoseMeasurement, i: int, config: MeasurementConfig) -> gtsam.NonlinearFactor:
-    """Prior on ``X(i)`` from a per-frame pose: ``e = Log(T_meas^-1 T)``, covariance as given."""
-    return gtsam.PriorFactorPose3(
-        X(i), to_pose3(m.left_cam_from_target), robust(gaussian(m.covariance), 6, config)
-    )
+    """Prior on ``X(i)`` from a per-frame pose (``T_true = T_meas Exp(xi)``, ``xi ~ N(0, C)``)."""
+    T = m.left_cam_from_target
+    C = pose_covariance_to_state(T, m.covariance)
+    return gtsam.PriorFactorPose3(X(i), to_state(T), robust(gaussian(C), 6, config))
 
 
 # --------------------------------------------------------------------------------------------
@@ -187,31 +199,36 @@ def ring_covariance(m: RingMeasurement, with_radius: bool) -> np.ndarray:
 def ring_factor(
     m: RingMeasurement, i: int, config: MeasurementConfig, clock: FactorClock | None = None
 ) -> gtsam.CustomFactor:
-    """The ring's centre, normal (and radius) at state ``i`` (see the module docstring)."""
+    """The ring's centre, normal (and radius) at state ``i`` (see the module docstring).
+
+    With ``X = T^-1``: ``t = -R_X^T t_X`` and ``R e_z = R_X^T e_z =: n``; for ``X Exp(d)``,
+    ``dt/d(theta) = [t]x``, ``dt/d(rho) = -I``, ``dn/d(theta) = [n]x``.
+    """
     c = np.asarray(m.center_m, float)
     B = tangent_basis(m.normal)
     r = float(m.radius_m)
     with_radius = config.ring_radius
     dim = 6 if with_radius else 5
     keys = [X(i), RADIUS] if with_radius else [X(i)]
-    Bez = -B.T  # d(B^T R e_z)/d(theta) = -B^T R [e_z]x ; R applied below
-    ez_x = skew(E_Z)
+    minus_eye = -np.eye(3)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
         t0 = clock.start() if clock is not None else 0.0
         ks = this.keys()
-        T = values.atPose3(ks[0])
-        R = T.rotation().matrix()
-        t = T.translation()
+        Xp = values.atPose3(ks[0])
+        Rx = Xp.rotation().matrix()
+        t = -Rx.T @ Xp.translation()
+        n = Rx[2]  # R_X^T e_z
         e = np.empty(dim)
         e[0:3] = t - c
-        e[3:5] = B.T @ R[:, 2]
+        e[3:5] = B.T @ n
         if with_radius:
             e[5] = values.atVector(ks[1])[0] - r
         if H is not None:
             Hx = np.zeros((dim, 6), order="F")
-            Hx[0:3, TRANS] = R
-            Hx[3:5, ROT] = Bez @ R @ ez_x
+            Hx[0:3, ROT] = skew(t)
+            Hx[0:3, TRANS] = minus_eye
+            Hx[3:5, ROT] = B.T @ skew(n)
             H[0] = Hx
             if with_radius:
                 Hr = np.zeros((dim, 1), order="F")
@@ -225,75 +242,32 @@ def ring_factor(
     return gtsam.CustomFactor(noise, keys, error)
 
 
-def _project(K: np.ndarray, Xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel (2,) of camera-frame point ``Xc`` and its Jacobian d(pixel)/d(Xc) (2x3)."""
-    x, y, z = Xc
-    fx, s, cx = K[0]
-    fy, cy = K[1, 1], K[1, 2]
-    u = np.array([(fx * x + s * y) / z + cx, fy * y / z + cy])
-    J = np.array([[fx / z, s / z, -(fx * x + s * y) / z**2], [0.0, fy / z, -fy * y / z**2]])
-    return u, J
-
-
-def landmark_factor(
-    m: LandmarkMeasurement,
-    i: int,
-    rig: StereoRig,
-    config: MeasurementConfig,
-    clock: FactorClock | None = None,
-) -> gtsam.CustomFactor:
-    """Stereo (4,) or left-only (2,) reprojection factor on ``(X(i), L(track_id))``.
-
-    Points behind a camera give the residual ``2 fx`` per coordinate and zero Jacobians (as
-    GTSAM's projection factors do without cheirality exceptions), so one bad linearisation
-    point cannot abort an optimisation.
-    """
-    stereo = m.right_px is not None and rig.K_right is not None
-    dim = 4 if stereo else 2
-    z_meas = np.asarray(m.left_px, float)
-    if stereo:
-        assert m.right_px is not None and rig.right_from_left is not None
-        z_meas = np.concatenate([z_meas, np.asarray(m.right_px, float)])
-        R_rl = np.asarray(rig.right_from_left.R, float)
-        t_rl = np.asarray(rig.right_from_left.t, float)
-    K_l, K_r = rig.K_left, rig.K_right
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
-        t0 = clock.start() if clock is not None else 0.0
-        ks = this.keys()
-        T = values.atPose3(ks[0])
-        p = values.atVector(ks[1])
-        R = T.rotation().matrix()
-        Xl = R @ p + T.translation()
-        Xr = R_rl @ Xl + t_rl if stereo else None
-        if Xl[2] <= 1e-6 or (Xr is not None and Xr[2] <= 1e-6):
-            e = np.full(dim, 2.0 * K_l[0, 0])
-            if H is not None:
-                H[0] = np.zeros((dim, 6), order="F")
-                H[1] = np.zeros((dim, 3), order="F")
-        else:
-            ul, Jl = _project(K_l, Xl)
-            e = np.empty(dim)
-            e[0:2] = ul - z_meas[0:2]
-            dX = np.zeros((dim, 3))  # d(pixels)/d(Xl)
-            dX[0:2] = Jl
-            if Xr is not None:
-                assert K_r is not None
-                ur, Jr = _project(K_r, Xr)
-                e[2:4] = ur - z_meas[2:4]
-                dX[2:4] = Jr @ R_rl
-            if H is not None:
-                Hx = np.empty((dim, 6), order="F")
-                Hx[:, ROT] = -dX @ R @ skew(p)
-                Hx[:, TRANS] = dX @ R
-                H[0] = Hx
-                H[1] = np.asfortranarray(dX @ R)
-        if clock is not None:
-            clock.stop(t0)
-        return e
-
-    noise = robust(gtsam.noiseModel.Isotropic.Sigma(dim, float(m.sigma_px)), dim, config)
-    return gtsam.CustomFactor(noise, [X(i), L(m.track_id)], error)
+def landmark_factors(
+    m: LandmarkMeasurement, i: int, rig: StereoRig, config: MeasurementConfig
+) -> list[gtsam.NonlinearFactor]:
+    """Reprojection factors of a tracked point on ``(X(i), L(track_id))``: the left image and,
+    for a stereo observation, the right one (GTSAM C++ projection factors; a point behind a
+    camera gives a constant error instead of an exception)."""
+    noise = robust(gtsam.noiseModel.Isotropic.Sigma(2, float(m.sigma_px)), 2, config)
+    out: list[gtsam.NonlinearFactor] = [
+        gtsam.GenericProjectionFactorCal3_S2(
+            np.asarray(m.left_px, float), noise, X(i), L(m.track_id), rig.cal_left, False, False
+        )
+    ]
+    if m.right_px is not None and rig.cal_right is not None and rig.left_from_right is not None:
+        out.append(
+            gtsam.GenericProjectionFactorCal3_S2(
+                np.asarray(m.right_px, float),
+                noise,
+                X(i),
+                L(m.track_id),
+                rig.cal_right,
+                False,
+                False,
+                rig.left_from_right,
+            )
+        )
+    return out
 
 
 def gauge_factor(track_id: int, config: MeasurementConfig) -> gtsam.CustomFactor:

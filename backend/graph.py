@@ -1,7 +1,8 @@
 """Frame-by-frame construction of the factor graph shared by the batch and iSAM2 estimators.
 
-States: ``X(i)`` (``left_cam_from_target``) and ``V(i)`` (body twist) for the ``i``-th frame
-added; in tight coupling also ``L(j)`` (landmarks, target frame) and ``R(0)`` (ring radius).
+States: ``X(i)`` (``target_from_left_cam``, see `satpose.backend.pose3`) and ``V(i)`` (body
+twist) for the ``i``-th frame added; in tight coupling also ``L(j)`` (landmarks, target frame)
+and ``R(0)`` (ring radius).
 
 The graph starts at the first frame that can fix the target frame — one with a pose (loose
 coupling) or with the ring and a landmark usable as the x-axis anchor (tight coupling).
@@ -18,6 +19,7 @@ from typing import Literal
 
 import gtsam
 import numpy as np
+from scipy.stats import chi2
 
 from satpose.backend.errors import BackendError
 from satpose.backend.factors import (
@@ -27,19 +29,20 @@ from satpose.backend.factors import (
     choose_anchor,
     gauge_factor,
     gauge_pose,
-    landmark_factor,
+    landmark_factors,
     pose_factor,
     ring_factor,
 )
 from satpose.backend.keys import RADIUS, L, V, X
 from satpose.backend.motion import (
     MotionConfig,
-    motion_factor,
+    constant_twist_factor,
     predict,
+    process_covariance,
     twist_between,
     twist_prior_factor,
 )
-from satpose.backend.pose3 import to_pose3
+from satpose.backend.pose3 import local_error, to_state
 from satpose.datasets.geometry import Rigid3
 from satpose.datasets.sequence import Calibration
 from satpose.frontend.measurements import FrameMeasurements
@@ -82,8 +85,10 @@ class GraphBuilder:
         self.anchor: int | None = None
         self.landmarks: set[int] = set()
         self.radius_initialized = False
+        self.full_frames = 0  # frames whose measurements fix a whole pose
         self._pending: list[FrameMeasurements] = []
         self._hint: dict[int, tuple[Rigid3, np.ndarray]] = {}
+        self._hint_cov: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     # -- bookkeeping ------------------------------------------------------------------------
 
@@ -94,9 +99,18 @@ class GraphBuilder:
     def __len__(self) -> int:
         return len(self.frames)
 
-    def set_hint(self, i: int, pose: Rigid3, twist: np.ndarray) -> None:
-        """Record the current best pose and twist of state ``i`` (used for predictions)."""
+    def set_hint(
+        self,
+        i: int,
+        pose: Rigid3,
+        twist: np.ndarray,
+        covariances: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
+        """Record the current best pose and twist of state ``i`` (used for predictions), and
+        optionally their covariances (used to gate a measured initial pose)."""
         self._hint[i] = (pose, np.asarray(twist, float))
+        if covariances is not None:
+            self._hint_cov[i] = covariances
 
     def hint(self, i: int) -> tuple[Rigid3, np.ndarray]:
         return self._hint[i]
@@ -109,10 +123,15 @@ class GraphBuilder:
         """Factors and initial values for frame ``m``.
 
         Args:
-            prefer: initial pose of a new state: the frame's own pose measurement when there
-                is one (``measurement``, batch), or the constant-twist prediction from the
-                previous state's hint (``prediction``, iSAM2; the measurement is still used
-                for the first two states, before the twist is known).
+            prefer: initial pose of a new state when the frame has a pose measurement (the
+                frontend's per-frame pose, also in tight coupling, where it is not a factor):
+                ``measurement`` takes it (batch); ``prediction`` (iSAM2) takes it only if it
+                agrees with the constant-twist prediction (chi-square gate at
+                ``robust_quantile`` with the measurement's and the prediction's covariance)
+                or the twist is not known yet (first two states), else the prediction. iSAM2
+                computes a factor's robust weight once, at the linearisation point it gets
+                when inserted: an initial value several sigma away from the measurements
+                would down-weight them until the state is relinearised.
         """
         if self.t_s and not m.t_s > self.t_s[-1]:
             raise BackendError(
@@ -138,16 +157,31 @@ class GraphBuilder:
         predicted = predict(prev_pose, prev_twist, dt)
         measured = m.pose.left_cam_from_target if m.pose is not None else None
         assert self.start is not None
-        use_measurement = measured is not None and (prefer == "measurement" or i - self.start < 2)
+        use_measurement = measured is not None and (
+            prefer == "measurement" or i - self.start < 2 or self._agrees(m, predicted, i - 1, dt)
+        )
         pose = measured if use_measurement and measured is not None else predicted
         twist = twist_between(prev_pose, pose, dt) if use_measurement else prev_twist
         self._new_state(i, pose, twist, update)
-        update.factors.push_back(motion_factor(i - 1, i, dt, self.motion, self.clock))
+        update.factors.push_back(constant_twist_factor(i - 1, i, dt, self.motion, self.clock))
         n = update.factors.size()
         self._measurement_factors(i, m, pose, update)
         if update.factors.size() == n:
             update.notes.append("prediction only")
         return update
+
+    def _agrees(self, m: FrameMeasurements, predicted: Rigid3, prev: int, dt: float) -> bool:
+        """Is the frame's pose measurement within the gate of the prediction from ``prev``?
+        (prediction covariance to first order: previous pose + dt^2 twist + process noise,
+        cross terms ignored — it only chooses an initial value)."""
+        assert m.pose is not None
+        if self.config.robust == "none" or prev not in self._hint_cov:
+            return True
+        pose_cov, twist_cov = self._hint_cov[prev]
+        C = pose_cov + dt**2 * twist_cov + process_covariance(dt, self.motion)[:6, :6]
+        C = C + m.pose.covariance
+        e = local_error(predicted, m.pose.left_cam_from_target)
+        return float(e @ np.linalg.solve(C, e)) < chi2.ppf(self.config.robust_quantile, 6)
 
     def _can_start(self, m: FrameMeasurements) -> bool:
         if self.config.coupling == "loose":
@@ -173,7 +207,7 @@ class GraphBuilder:
         update.factors.push_back(twist_prior_factor(0, self.motion))
         for j in range(i):
             dt = self.t_s[j + 1] - self.t_s[j]
-            update.factors.push_back(motion_factor(j, j + 1, dt, self.motion, self.clock))
+            update.factors.push_back(constant_twist_factor(j, j + 1, dt, self.motion, self.clock))
         for j, pending in enumerate(self._pending):
             self._measurement_factors(j, pending, pose, update)
         self._pending = []
@@ -182,7 +216,7 @@ class GraphBuilder:
             update.notes.append(f"started: {i} earlier frame(s) tied by the motion prior")
 
     def _new_state(self, i: int, pose: Rigid3, twist: np.ndarray, update: GraphUpdate) -> None:
-        update.values.insert(X(i), to_pose3(pose))
+        update.values.insert(X(i), to_state(pose))
         update.values.insert(V(i), np.asarray(twist, float))
         update.created.append(i)
         self._hint[i] = (pose, np.asarray(twist, float))
@@ -193,7 +227,9 @@ class GraphBuilder:
         if self.config.coupling == "loose":
             if m.pose is not None:
                 update.factors.push_back(pose_factor(m.pose, i, self.config))
+                self.full_frames += 1
             return
+        observed = 0
         if m.ring is not None:
             if self.config.ring_radius and not self.radius_initialized:
                 update.values.insert(RADIUS, np.array([m.ring.radius_m]))
@@ -208,4 +244,8 @@ class GraphBuilder:
                     continue  # a left-only sighting cannot place a new landmark
                 update.values.insert(L(lm.track_id), target_from_cam.apply(lm.point_m))
                 self.landmarks.add(lm.track_id)
-            update.factors.push_back(landmark_factor(lm, i, self.rig, self.config, self.clock))
+            for factor in landmark_factors(lm, i, self.rig, self.config):
+                update.factors.push_back(factor)
+            observed += 1
+        if (m.ring is not None and observed) or observed >= 3:
+            self.full_frames += 1

@@ -1,33 +1,31 @@
-"""The motion prior: white noise on acceleration (constant twist) over ``(Pose3, twist)`` states.
+"""The motion prior: white noise on acceleration (constant twist) over ``(pose, twist)`` states.
 
 The target's body twist ``xi = [omega, v]`` (target frame, [rad/s, m/s]) is a random walk driven
 by white angular and linear acceleration with power spectral densities ``q_omega`` [rad^2/s^3]
-and ``q_v`` [m^2/s^3] (Barfoot, *State Estimation for Robotics*, 2nd ed., sec. 11.1: the
-"WNOA" Gaussian-process prior on SE(3)). Between frames ``k`` and ``k+1``, ``dt`` apart, the
-residual
+and ``q_v`` [m^2/s^3] (the "WNOA" prior of Barfoot, *State Estimation for Robotics*, 2nd ed.,
+sec. 11.1, on SE(3)). Between frames ``k`` and ``k+1``, ``dt`` apart, with
+``T = left_cam_from_target``, the residual
 
-    e = [ Log(T_k^-1 T_k+1) - dt * xi_k ;  J_r^-1(Log(T_k^-1 T_k+1)) xi_k+1 - xi_k ]   (12,)
+    e = [ Log(T_k^-1 T_k+1) - dt xi_k ;  xi_k+1 - xi_k ]      (12,)
 
 has covariance ``Q(dt) = [[dt^3/3, dt^2/2], [dt^2/2, dt]] (x) diag(q_omega I3, q_v I3)``. It is
 exactly zero on a constant-twist trajectory ``T(t) = T_0 Exp(xi t)`` however fast the spin,
-unlike `gtsam.ConstantVelocityFactor`, which keeps the rotation constant.
+unlike `gtsam.ConstantVelocityFactor`, which keeps the rotation constant. The process noise acts
+in the target's body frame (torques about the target, forces on it), not about the camera.
 
-Two implementations of the same prior (`MotionConfig.factor`):
-
-- ``wnoa`` (default): GTSAM's C++ ``WnoaMotionFactorPose3`` (gtsam >= 4.3), the residual above.
-  Its pose Jacobian of the second block truncates the series of ``J_r^-1`` after the
-  ``ad^2`` term (error ~ ``|dt xi|^3 / 720``, measured in tests/backend/test_motion.py).
-- ``python``: `constant_twist_factor`, a Python `gtsam.CustomFactor` with the simpler second
-  block ``xi_k+1 - xi_k`` (a body-frame twist random walk; equal to first order, also zero on
-  constant twist) and exact analytic Jacobians. Kept to measure what a Python factor costs
-  (benchmarks/backend_simulated.py) and as a cross-check of the C++ factor.
+`constant_twist_factor` is a Python `gtsam.CustomFactor` with analytic Jacobians. The graph
+stores ``X = T^-1`` (`satpose.backend.pose3`), so ``T_k^-1 T_k+1 = X_k X_k+1^-1``. GTSAM's C++
+``WnoaMotionFactorPose3`` (gtsam >= 4.3) implements the same prior with the second block
+``J_r^-1(Log(.)) xi_k+1 - xi_k`` (equal to first order) but on the pose variable itself: on
+``X`` it would put the angular noise about the camera centre, 5-7 m from the target, so it
+serves as the C++ reference in tests and benchmarks only.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -55,14 +53,12 @@ class MotionConfig:
             state's angular velocity (per axis) [rad/s]; weak, it only keeps the first frames
             determined.
         first_linear_velocity_sigma_m_s: same for the first linear velocity [m/s].
-        factor: ``wnoa`` (GTSAM's C++ factor) or ``python`` (`constant_twist_factor`).
     """
 
     angular_accel_noise_rad_s2_rthz: float = 1e-4
     linear_accel_noise_m_s2_rthz: float = 5e-4
     first_angular_rate_sigma_rad_s: float = 1.0
     first_linear_velocity_sigma_m_s: float = 0.5
-    factor: Literal["wnoa", "python"] = "wnoa"
 
     def __post_init__(self) -> None:
         for name in (
@@ -74,8 +70,6 @@ class MotionConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise BackendError(f"motion.{name} must be positive, got {value}")
-        if self.factor not in ("wnoa", "python"):
-            raise BackendError(f"motion.factor must be 'wnoa' or 'python', got {self.factor!r}")
 
 
 def psd(config: MotionConfig) -> np.ndarray:
@@ -120,32 +114,21 @@ def twist_prior_factor(i: int, config: MotionConfig) -> gtsam.NonlinearFactor:
     )
 
 
-def motion_factor(
-    i: int, j: int, dt: float, config: MotionConfig, clock: Any = None
-) -> gtsam.NonlinearFactor:
-    """The motion prior between states ``i`` and ``j = i + 1``, ``dt`` seconds apart.
-
-    Args:
-        clock: optional `satpose.backend.factors.FactorClock` that times the Python factor.
-    """
-    if not dt > 0:
-        raise BackendError(f"frame times must increase, got a step of {dt} s")
-    if config.factor == "wnoa":
-        return gtsam.WnoaMotionFactorPose3(
-            gtsam.StateData(X(i), V(i), 0.0), gtsam.StateData(X(j), V(j), dt), psd(config)
-        )
-    return constant_twist_factor(i, j, dt, config, clock)
-
-
 def constant_twist_factor(
     i: int, j: int, dt: float, config: MotionConfig, clock: Any = None
 ) -> gtsam.CustomFactor:
-    """Python constant-twist factor on ``(X(i), V(i), X(j), V(j))`` with analytic Jacobians.
+    """The motion prior on ``(X(i), V(i), X(j), V(j))``, ``dt`` seconds apart (Python factor).
 
-    Residual (12,): ``[Log(T_i^-1 T_j) - dt xi_i ; xi_j - xi_i]``, covariance ``Q(dt)``.
-    With ``D = T_i^-1 T_j`` and ``d = Log(D)``: ``dd/dT_i = -J_r^-1(d) Ad(D^-1)``,
-    ``dd/dT_j = J_r^-1(d)`` (right perturbations).
+    Residual (12,): ``[Log(D) - dt xi_i ; xi_j - xi_i]`` with ``D = X_i X_j^-1 = T_i^-1 T_j``,
+    covariance ``Q(dt)``. Right perturbations ``X Exp(delta)``: ``D`` becomes
+    ``D Exp(Ad(X_j) delta_i)`` and ``D Exp(-Ad(X_j) delta_j)``, so with ``d = Log(D)``:
+    ``dd/dX_i = J_r^-1(d) Ad(X_j)``, ``dd/dX_j = -J_r^-1(d) Ad(X_j)``.
+
+    Args:
+        clock: optional `satpose.backend.factors.FactorClock` timing the Python evaluations.
     """
+    if not dt > 0:
+        raise BackendError(f"frame times must increase, got a step of {dt} s")
     eye, zero = np.eye(6), np.zeros((6, 6))
     H_vi = np.asfortranarray(np.vstack([-dt * eye, -eye]))
     H_vj = np.asfortranarray(np.vstack([zero, eye]))
@@ -153,16 +136,16 @@ def constant_twist_factor(
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
         t0 = clock.start() if clock is not None else 0.0
         keys = this.keys()
-        Ti, Tj = values.atPose3(keys[0]), values.atPose3(keys[2])
+        Xi, Xj = values.atPose3(keys[0]), values.atPose3(keys[2])
         xi_i, xi_j = values.atVector(keys[1]), values.atVector(keys[3])
-        D = Ti.between(Tj)
+        D = Xi.compose(Xj.inverse())
         d = gtsam.Pose3.Logmap(D)
         e = np.concatenate([d - dt * xi_i, xi_j - xi_i])
         if H is not None:
-            Jinv = gtsam.Pose3.LogmapDerivative(d)
-            H[0] = np.asfortranarray(np.vstack([-Jinv @ D.inverse().AdjointMap(), zero]))
+            A = gtsam.Pose3.LogmapDerivative(d) @ Xj.AdjointMap()
+            H[0] = np.asfortranarray(np.vstack([A, zero]))
             H[1] = H_vi
-            H[2] = np.asfortranarray(np.vstack([Jinv, zero]))
+            H[2] = np.asfortranarray(np.vstack([-A, zero]))
             H[3] = H_vj
         if clock is not None:
             clock.stop(t0)
@@ -184,20 +167,18 @@ def sample_trajectory(
 ) -> tuple[list[Rigid3], np.ndarray]:
     """A trajectory drawn from the motion prior itself (for consistency tests).
 
-    Each step draws the residual of the WNOA factor, ``w ~ N(0, Q(dt))``, and solves the
-    factor's equations for the next state: ``d = dt xi_k + w_1``, ``T_k+1 = T_k Exp(d)``,
-    ``xi_k+1 = J_r(d) (xi_k + w_2)`` — so the ``wnoa`` factor's residuals along the sample are
-    exactly Gaussian with covariance ``Q(dt)``.
+    Each step draws the factor's residual ``w ~ N(0, Q(dt))`` and solves for the next state:
+    ``T_k+1 = T_k Exp(dt xi_k + w_1)``, ``xi_k+1 = xi_k + w_2`` — so the residuals of
+    `constant_twist_factor` along the sample are exactly Gaussian with covariance ``Q(dt)``.
 
     Returns:
-        (poses ``left_cam_from_target`` per time, twists (N, 6)).
+        (``left_cam_from_target`` per time, twists (N, 6)).
     """
     poses = [T0]
     twists = [np.asarray(twist0, float)]
     for k in range(1, len(t_s)):
         dt = float(t_s[k] - t_s[k - 1])
         w = rng.multivariate_normal(np.zeros(12), process_covariance(dt, config))
-        d = dt * twists[-1] + w[:6]
-        poses.append(exp(poses[-1], d))
-        twists.append(gtsam.Pose3.ExpmapDerivative(d) @ (twists[-1] + w[6:]))
+        poses.append(exp(poses[-1], dt * twists[-1] + w[:6]))
+        twists.append(twists[-1] + w[6:])
     return poses, np.array(twists)

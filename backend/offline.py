@@ -15,7 +15,8 @@ from satpose.backend.factors import FactorClock, MeasurementConfig
 from satpose.backend.graph import GraphBuilder
 from satpose.backend.keys import V, X
 from satpose.backend.motion import MotionConfig
-from satpose.backend.pose3 import from_pose3
+from satpose.backend.pose3 import from_state, state_covariance_to_pose, state_to_pose_jacobian
+from satpose.backend.solve import Covariances, levenberg_marquardt
 from satpose.datasets.sequence import Calibration
 from satpose.frontend.measurements import FrameMeasurements
 
@@ -63,7 +64,7 @@ class OfflineEstimator:
         self.graph = gtsam.NonlinearFactorGraph()
         self.initial = gtsam.Values()
         self._result: gtsam.Values | None = None
-        self._marginals: gtsam.Marginals | None = None
+        self._covariances: Covariances | None = None
         self._estimate: Estimate | None = None
 
     def add(self, measurements: FrameMeasurements) -> None:
@@ -89,40 +90,29 @@ class OfflineEstimator:
 
     def _solve(self) -> None:
         if not self.builder.started:
-            raise BackendError(
-                "no frame with usable measurements yet: "
-                + (
-                    "loose coupling needs a pose"
-                    if self.builder.config.coupling == "loose"
-                    else "tight coupling needs the ring and an anchor landmark"
-                )
-            )
+            raise BackendError(not_started_message(self.builder))
         t0 = time.perf_counter()
         c0 = self.clock.seconds
         initial = gtsam.Values(self.initial)
         if self._result is not None:
             initial.update(self._result)  # warm start: previous solution where it exists
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(self.config.max_iterations)
-        params.setRelativeErrorTol(self.config.relative_error_tol)
-        params.setAbsoluteErrorTol(self.config.absolute_error_tol)
-        optimizer = gtsam.LevenbergMarquardtOptimizer(self.graph, initial, params)
-        result = optimizer.optimize()
-        t1 = time.perf_counter()
-        marginals = gtsam.Marginals(self.graph, result)
-        t2 = time.perf_counter()
-        self._result, self._marginals = result, marginals
-        n = len(self.builder)
-        for i in range(n):
-            self.builder.set_hint(i, from_pose3(result.atPose3(X(i))), result.atVector(V(i)))
-        self._estimate = Estimate(
-            frame=np.array(self.builder.frames),
-            t_s=np.array(self.builder.t_s),
-            left_cam_from_target=tuple(from_pose3(result.atPose3(X(i))) for i in range(n)),
-            twist=np.array([result.atVector(V(i)) for i in range(n)]),
-            pose_covariance=np.array([marginals.marginalCovariance(X(i)) for i in range(n)]),
-            twist_covariance=np.array([marginals.marginalCovariance(V(i)) for i in range(n)]),
+        solution = levenberg_marquardt(
+            self.graph,
+            initial,
+            self.config.max_iterations,
+            self.config.relative_error_tol,
+            self.config.absolute_error_tol,
         )
+        result = solution.values
+        t1 = time.perf_counter()
+        covariances = Covariances(self.graph, result)
+        self._result, self._covariances = result, covariances
+        self._estimate = estimate_from_values(self.builder, result, covariances)
+        for i in range(len(self.builder)):
+            self.builder.set_hint(
+                i, self._estimate.left_cam_from_target[i], self._estimate.twist[i]
+            )
+        t2 = time.perf_counter()
         if self.hook is not None:
             self.hook(
                 StepReport(
@@ -136,8 +126,8 @@ class OfflineEstimator:
                     },
                     factors=self.graph.size(),
                     variables=result.size(),
-                    iterations=optimizer.iterations(),
-                    error=self.graph.error(result),
+                    iterations=solution.iterations,
+                    error=solution.error,
                 )
             )
 
@@ -153,7 +143,6 @@ class OfflineEstimator:
         (12N x 12N, ``[pose_0, twist_0, pose_1, ...]``), frame-major — for consistency checks
         of the whole trajectory (frames are correlated through the motion prior)."""
         self.estimate()
-        assert self._marginals is not None
         n = len(self.builder)
         keys: list[int] = []
         for i in range(n):
@@ -161,6 +150,42 @@ class OfflineEstimator:
                 keys.append(X(i))
             if which in ("twist", "state"):
                 keys.append(V(i))
-        joint = self._marginals.jointMarginalCovariance(gtsam.KeyVector(keys))
-        blocks = [[joint.at(a, b) for b in keys] for a in keys]
-        return np.block(blocks)
+        poses = {X(i) for i in range(n)}
+        n_keys = len(keys)
+        assert self._result is not None and self._covariances is not None
+        blocks = self._covariances.joint(keys)
+        # pose blocks: the graph's X = T^-1 perturbation -> T's (`pose3.state_to_pose_jacobian`)
+        J = [
+            state_to_pose_jacobian(self._result.atPose3(k)) if k in poses else np.eye(6)
+            for k in keys
+        ]
+        C = np.block([[J[a] @ blocks[a][b] @ J[b].T for b in range(n_keys)] for a in range(n_keys)])
+        return 0.5 * (C + C.T)
+
+
+def not_started_message(builder: GraphBuilder) -> str:
+    """Why there is no estimate yet."""
+    need = (
+        "a pose (loose coupling)"
+        if builder.config.coupling == "loose"
+        else "the ring and an anchor landmark (tight coupling)"
+    )
+    return f"no frame with usable measurements yet: the graph starts at a frame with {need}"
+
+
+def estimate_from_values(
+    builder: GraphBuilder, values: gtsam.Values, covariances: Covariances
+) -> Estimate:
+    """The `Estimate` of every frame from solved graph values and their covariances."""
+    n = len(builder)
+    states = [values.atPose3(X(i)) for i in range(n)]
+    return Estimate(
+        frame=np.array(builder.frames),
+        t_s=np.array(builder.t_s),
+        left_cam_from_target=tuple(from_state(Xi) for Xi in states),
+        twist=np.array([values.atVector(V(i)) for i in range(n)]),
+        pose_covariance=np.array(
+            [state_covariance_to_pose(states[i], covariances.marginal(X(i))) for i in range(n)]
+        ),
+        twist_covariance=np.array([covariances.marginal(V(i)) for i in range(n)]),
+    )

@@ -9,6 +9,13 @@ and the helpers below. The frontend's `PoseMeasurement.covariance` uses the same
 
 The same order holds for the body twist ``[omega (rad/s), v (m/s)]``: it is a Pose3 tangent
 vector per second.
+
+Inside the graph a pose is stored as GTSAM's usual "camera in world" pose with the target as the
+world: ``X = target_from_left_cam = left_cam_from_target^-1`` (so that GTSAM's C++ projection
+factors observe target-frame landmarks directly). `to_state` / `from_state` convert, and
+`state_to_pose_jacobian` maps GTSAM's right perturbation of ``X`` to the right perturbation of
+``left_cam_from_target`` that every covariance leaving the backend uses:
+``X_true = X Exp(d)``  =>  ``T_true = T Exp(-Ad_X d)``.
 """
 
 from __future__ import annotations
@@ -74,3 +81,35 @@ def gaussian(covariance: np.ndarray) -> gtsam.noiseModel.Gaussian:
     """A full-covariance noise model (symmetrised first; order as the factor's residual)."""
     C = np.asarray(covariance, float)
     return gtsam.noiseModel.Gaussian.Covariance(0.5 * (C + C.T))
+
+
+def to_state(T: Rigid3) -> gtsam.Pose3:
+    """The graph's pose variable ``X = T^-1`` for ``T = left_cam_from_target``."""
+    return to_pose3(T.inverse())
+
+
+def from_state(X: gtsam.Pose3) -> Rigid3:
+    """``left_cam_from_target`` from the graph's pose variable ``X = target_from_left_cam``."""
+    return from_pose3(X.inverse())
+
+
+def state_to_pose_jacobian(X: gtsam.Pose3) -> np.ndarray:
+    """6x6 ``J`` with ``xi = J d`` for ``X_true = X Exp(d)``, ``T_true = T Exp(xi)``
+    (``J = -Ad_X``); a covariance ``C_X`` of ``d`` becomes ``J C_X J^T``."""
+    return -np.asarray(X.AdjointMap(), float)
+
+
+def pose_covariance_to_state(T: Rigid3, covariance: np.ndarray) -> np.ndarray:
+    """The covariance of ``d`` (``X_true = X Exp(d)``) from that of ``xi`` (``T_true = T Exp(xi)``):
+    ``d = -Ad_T xi``."""
+    A = adjoint(T)
+    C = A @ np.asarray(covariance, float) @ A.T
+    return 0.5 * (C + C.T)
+
+
+def state_covariance_to_pose(X: gtsam.Pose3, covariance: np.ndarray) -> np.ndarray:
+    """The covariance of ``xi`` (``T_true = T Exp(xi)``) from that of ``d``
+    (``X_true = X Exp(d)``), i.e. ``J C J^T`` with `state_to_pose_jacobian`."""
+    J = state_to_pose_jacobian(X)
+    C = J @ np.asarray(covariance, float) @ J.T
+    return 0.5 * (C + C.T)
