@@ -72,6 +72,10 @@ class MeasurementConfig:
     Attributes:
         coupling: ``loose`` (per-frame poses) or ``tight`` (ring + landmark pixels).
         robust: robust kernel on every measurement factor: ``none``, ``huber`` or ``cauchy``.
+            Cauchy (default) ignores gross outliers (a ring fitted to the wrong one of its two
+            circular sections, a mismatched landmark); Huber's pull, linear in the residual,
+            still moves a frame by ``~k sigma_motion^2 / sigma_meas`` when one precise
+            measurement is wrong (tests/backend/test_estimators.py).
         robust_quantile: the kernel's threshold ``k`` on the whitened residual norm is
             ``sqrt(chi2.ppf(robust_quantile, dim))`` for a factor of dimension ``dim``, so an
             inlier is down-weighted with probability ``1 - robust_quantile`` whatever the
@@ -85,7 +89,7 @@ class MeasurementConfig:
     """
 
     coupling: Literal["loose", "tight"] = "tight"
-    robust: Literal["none", "huber", "cauchy"] = "huber"
+    robust: Literal["none", "huber", "cauchy"] = "cauchy"
     robust_quantile: float = 0.999
     ring_radius: bool = True
     landmark_kinds: tuple[LandmarkKind, ...] = (

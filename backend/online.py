@@ -56,6 +56,10 @@ class Isam2Config:
             linearises).
         relinearize_skip: check for relinearisation every this many updates.
         extra_updates: additional ``update()`` calls (Gauss-Newton steps) per frame.
+        final_updates: at most this many ``update()`` calls without new factors before
+            `OnlineEstimator.estimate` reads the smoothed solution (stops as soon as nothing
+            is relinearised): the newest frames have had one Gauss-Newton step only, and
+            robust weights are recomputed only on relinearisation.
         factorization: ``cholesky`` (fast) or ``qr`` (more robust to ill-conditioning).
     """
 
@@ -66,6 +70,7 @@ class Isam2Config:
     relinearize_radius: float = 1e-5
     relinearize_skip: int = 1
     extra_updates: int = 0
+    final_updates: int = 10
     factorization: Literal["cholesky", "qr"] = "cholesky"
 
     def __post_init__(self) -> None:
@@ -78,8 +83,8 @@ class Isam2Config:
         ):
             if not getattr(self, name) > 0:
                 raise BackendError(f"online.{name} must be positive")
-        if self.relinearize_skip < 1 or self.extra_updates < 0:
-            raise BackendError("online.relinearize_skip >= 1 and extra_updates >= 0 required")
+        if self.relinearize_skip < 1 or self.extra_updates < 0 or self.final_updates < 0:
+            raise BackendError("online: relinearize_skip >= 1, extra/final_updates >= 0 required")
         if self.factorization not in ("cholesky", "qr"):
             raise BackendError(f"online.factorization: cholesky or qr, got {self.factorization}")
 
@@ -233,12 +238,17 @@ class OnlineEstimator:
         )
 
     def estimate(self) -> Estimate:
-        """The current smoothed estimate of every frame (iSAM2's full solution)."""
+        """The current smoothed estimate of every frame: iSAM2's solution after up to
+        ``final_updates`` Gauss-Newton steps without new factors (which also benefit the
+        frames added later)."""
         self._require_start()
         if not self._released:
             assert self._warm_estimate is not None
             return self._warm_estimate
         if self._estimate is None:
+            for _ in range(self.config.final_updates):
+                if self.isam.update().getVariablesRelinearized() == 0:
+                    break
             values = self.isam.calculateBestEstimate()  # full back-substitution
             n = len(self.builder)
             self._estimate = Estimate(

@@ -36,7 +36,7 @@ from satpose.frontend.measurements import FrameMeasurements
 FRAMES = 30
 
 
-def _config(coupling: str, robust: str = "huber") -> BackendConfig:
+def _config(coupling: str, robust: str = "cauchy") -> BackendConfig:
     return BackendConfig(
         measurements=MeasurementConfig(coupling=coupling, robust=robust)  # type: ignore[arg-type]
     )
@@ -135,20 +135,23 @@ def test_average_nees_on_the_presets_is_not_optimistic(preset_name: str, cases) 
 
 
 def test_batch_and_final_isam2_agree(cases) -> None:  # type: ignore[no-untyped-def]
-    """Same graph, same optimum: iSAM2's final solution equals the batch solution to a small
-    fraction of the estimate's own uncertainty (0.05 sigma per component; the two differ
-    only by iSAM2's partial relinearisation), and so do the covariances (5%)."""
+    """Same graph, same optimum. Two tolerance tiers, per component in units of the batch
+    estimate's own sigma: without a robust kernel iSAM2 converges to the batch solution up to
+    its relinearisation thresholds (0.02 sigma; measured 0.005). With the default Cauchy kernel
+    the weights depend continuously on the residuals and iSAM2 recomputes them only for
+    variables it relinearises (0.15 sigma; measured 0.08). Covariances: 2% (measured 1%)."""
     case = cases("frontend", "tumble", FRAMES, 3)
-    for coupling in ("loose", "tight"):
-        batch = _run("offline", case, _config(coupling)).estimate()
-        final = _run("online", case, _config(coupling)).estimate()
-        for i in range(FRAMES):
-            d = local_error(batch.left_cam_from_target[i], final.left_cam_from_target[i])
-            assert np.all(np.abs(d) < 0.05 * batch.pose_sigmas()[i]), (coupling, i)
-            dt = final.twist[i] - batch.twist[i]
-            assert np.all(np.abs(dt) < 0.05 * batch.twist_sigmas()[i]), (coupling, i)
-        np.testing.assert_allclose(final.pose_sigmas(), batch.pose_sigmas(), rtol=0.05)
-        np.testing.assert_allclose(final.twist_sigmas(), batch.twist_sigmas(), rtol=0.05)
+    for robust, tol in (("none", 0.02), ("cauchy", 0.15)):
+        for coupling in ("loose", "tight"):
+            batch = _run("offline", case, _config(coupling, robust)).estimate()
+            final = _run("online", case, _config(coupling, robust)).estimate()
+            for i in range(FRAMES):
+                d = local_error(batch.left_cam_from_target[i], final.left_cam_from_target[i])
+                assert np.all(np.abs(d) < tol * batch.pose_sigmas()[i]), (robust, coupling, i)
+                dt = final.twist[i] - batch.twist[i]
+                assert np.all(np.abs(dt) < tol * batch.twist_sigmas()[i]), (robust, coupling, i)
+            np.testing.assert_allclose(final.pose_sigmas(), batch.pose_sigmas(), rtol=0.02)
+            np.testing.assert_allclose(final.twist_sigmas(), batch.twist_sigmas(), rtol=0.02)
 
 
 # --------------------------------------------------------------------------------------------
