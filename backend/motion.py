@@ -42,21 +42,25 @@ class MotionConfig:
 
     Attributes:
         angular_accel_noise_rad_s2_rthz: square root of the power spectral density of the
-            white angular acceleration, per axis, target frame [rad/s^2/sqrt(Hz)]. The angular
-            rate random-walks by ``this * sqrt(dt)`` [rad/s] over ``dt``.
+            white angular acceleration, per axis, target frame [rad/s^2/sqrt(Hz)]: the angular
+            rate random-walks by ``this * sqrt(dt)`` [rad/s] over ``dt``. A torque-free body
+            spinning about a principal axis keeps its body rate (environmental torques on a
+            satellite are ~1e-8 rad/s^2), so the default is small; a nutating tumbler changes
+            its body rate by up to ``|omega|^2 dI/I`` (~1e-4 rad/s^2 at 1 deg/s): raise it to
+            ~1e-3 for such targets (docs/results/backend_simulated.md, sensitivity table).
         linear_accel_noise_m_s2_rthz: same for the linear acceleration of the target-frame
             origin, target frame [m/s^2/sqrt(Hz)]. Covers what a constant body twist does not
-            model: the presets translate the bus centroid in a straight line while the body
-            spins, so the body-frame velocity of the ring centre turns at the spin rate
-            (``|omega x v| ~ 1e-4 m/s^2`` on ``tumble``).
+            model: a centroid moving in a straight line while the body spins makes the
+            body-frame velocity of the ring centre turn at the spin rate (``|omega x v|``, up
+            to ~1.5e-4 m/s^2 on the presets), plus the chaser's own accelerations.
         first_angular_rate_sigma_rad_s: standard deviation of the zero-mean prior on the first
             state's angular velocity (per axis) [rad/s]; weak, it only keeps the first frames
             determined.
         first_linear_velocity_sigma_m_s: same for the first linear velocity [m/s].
     """
 
-    angular_accel_noise_rad_s2_rthz: float = 1e-4
-    linear_accel_noise_m_s2_rthz: float = 5e-4
+    angular_accel_noise_rad_s2_rthz: float = 1e-5
+    linear_accel_noise_m_s2_rthz: float = 2e-4
     first_angular_rate_sigma_rad_s: float = 1.0
     first_linear_velocity_sigma_m_s: float = 0.5
 
