@@ -89,6 +89,9 @@ class GraphBuilder:
         self._pending: list[FrameMeasurements] = []
         self._hint: dict[int, tuple[Rigid3, np.ndarray]] = {}
         self._hint_cov: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # tight coupling: the frontend's target frame relative to the graph's gauge, from the
+        # starting frame (its per-frame poses are only initial values there)
+        self._frontend_from_gauge = Rigid3.identity()
 
     # -- bookkeeping ------------------------------------------------------------------------
 
@@ -155,7 +158,7 @@ class GraphBuilder:
         prev_pose, prev_twist = self._hint[i - 1]
         dt = self.t_s[i] - self.t_s[i - 1]
         predicted = predict(prev_pose, prev_twist, dt)
-        measured = m.pose.left_cam_from_target if m.pose is not None else None
+        measured = self._measured_pose(m)
         assert self.start is not None
         use_measurement = measured is not None and (
             prefer == "measurement" or i - self.start < 2 or self._agrees(m, predicted, i - 1, dt)
@@ -170,6 +173,14 @@ class GraphBuilder:
             update.notes.append("prediction only")
         return update
 
+    def _measured_pose(self, m: FrameMeasurements) -> Rigid3 | None:
+        """The frame's per-frame pose in the graph's target frame, or None (only an initial
+        value and a gate, so its covariance is not re-expressed: the two frames differ by
+        the frontend's few-degree bootstrap error)."""
+        if m.pose is None:
+            return None
+        return m.pose.left_cam_from_target @ self._frontend_from_gauge
+
     def _agrees(self, m: FrameMeasurements, predicted: Rigid3, prev: int, dt: float) -> bool:
         """Is the frame's pose measurement within the gate of the prediction from ``prev``?
         (prediction covariance to first order: previous pose + dt^2 twist + process noise,
@@ -180,7 +191,9 @@ class GraphBuilder:
         pose_cov, twist_cov = self._hint_cov[prev]
         C = pose_cov + dt**2 * twist_cov + process_covariance(dt, self.motion)[:6, :6]
         C = C + m.pose.covariance
-        e = local_error(predicted, m.pose.left_cam_from_target)
+        measured = self._measured_pose(m)
+        assert measured is not None
+        e = local_error(predicted, measured)
         return float(e @ np.linalg.solve(C, e)) < chi2.ppf(self.config.robust_quantile, 6)
 
     def _can_start(self, m: FrameMeasurements) -> bool:
@@ -200,6 +213,8 @@ class GraphBuilder:
             assert anchor is not None and anchor.point_m is not None
             pose = gauge_pose(m.ring, anchor.point_m)
             self.anchor = anchor.track_id
+            if m.pose is not None:
+                self._frontend_from_gauge = m.pose.left_cam_from_target.inverse() @ pose
             update.factors.push_back(gauge_factor(anchor.track_id, self.config))
         # Frames added before the start have no usable measurement: same pose, zero twist.
         for j in range(i + 1):

