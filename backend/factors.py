@@ -1,0 +1,333 @@
+"""Measurement factors: one function per measurement type of `satpose.frontend.measurements`.
+
+Every factor acts on the graph's pose variable ``X(i) = target_from_left_cam = T^-1`` (``T =
+left_cam_from_target``; right perturbation, [rotation, translation] tangent, see
+`satpose.backend.pose3`) and carries the noise the frontend reports, optionally inside a robust
+kernel (`MeasurementConfig.robust`).
+
+Loosely coupled (``coupling = "loose"``):
+
+- `pose_factor`: the per-frame pose (seed 000 eq. 9/10 or the frontend's least squares):
+  ``e = Log(X_meas^-1 X)`` with ``X_meas = T_meas^-1`` and the measurement covariance mapped by
+  ``Ad(T_meas)`` (`pose3.pose_covariance_to_state`). GTSAM's C++ ``PriorFactorPose3``.
+
+Tightly coupled (``coupling = "tight"``):
+
+- `ring_factor` (Python `gtsam.CustomFactor`, analytic Jacobians): the ring's 3-D circle,
+  fitted by the frontend to the edge points of both images: ``e = [t - c ; B^T R e_z ;
+  rho - r]`` (6,) where ``(R, t) = T``, ``c``, ``n``, ``r`` are the measured centre, normal and
+  radius, ``B`` (3x2) a tangent basis of ``n``, and ``rho`` the ring-radius variable shared by
+  all frames (``R(0)``). The target origin is the ring centre and its z axis the ring normal,
+  so this factor also fixes five of the six gauge freedoms. Covariance: the frontend's 7x7
+  ``[centre, normal, radius]`` covariance with the normal block projected on ``B``. Sharing
+  the radius is what a factor on the two image conics adds over independent per-frame
+  circles (the ring's apparent size fixes depth); the per-frame circle is the Gauss-Newton
+  summary of the edge points, so the information is the same to first order.
+- `landmark_factors`: a tracked point ``p = L(j)`` (target frame, a variable) observed in the
+  undistorted left and right images: two GTSAM C++ ``GenericProjectionFactorCal3_S2`` on
+  ``(X(i), L(j))`` (the right one with ``body_P_sensor = left_from_right``; the rig is not
+  rectified, so ``GenericStereoFactor3D`` does not apply), isotropic ``sigma_px``.
+- `gauge_factor` (Python): the last gauge freedom (rotation about the ring normal): the anchor
+  landmark has ``y = 0`` in the target frame (x toward the anchor projected on the ring plane,
+  as the frontend's `TargetFrameTracker` defines it).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import gtsam
+import numpy as np
+from scipy.stats import chi2
+
+from satpose.backend.errors import BackendError
+from satpose.backend.keys import RADIUS, L, X
+from satpose.backend.pose3 import (
+    ROT,
+    TRANS,
+    gaussian,
+    pose_covariance_to_state,
+    to_pose3,
+    to_state,
+)
+from satpose.datasets.geometry import Rigid3, skew
+from satpose.datasets.sequence import Calibration
+from satpose.frontend.measurements import (
+    LandmarkKind,
+    LandmarkMeasurement,
+    PoseMeasurement,
+    RingMeasurement,
+)
+
+E_Z = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True, kw_only=True)
+class MeasurementConfig:
+    """Which measurements become factors, and how they are weighted.
+
+    Attributes:
+        coupling: ``loose`` (per-frame poses) or ``tight`` (ring + landmark pixels).
+        robust: robust kernel on every measurement factor: ``none``, ``huber`` or ``cauchy``.
+            Cauchy (default) ignores gross outliers (a ring fitted to the wrong one of its two
+            circular sections, a mismatched landmark); Huber's pull, linear in the residual,
+            still moves a frame by ``~k sigma_motion^2 / sigma_meas`` when one precise
+            measurement is wrong (tests/backend/test_estimators.py).
+        robust_quantile: the kernel's threshold ``k`` on the whitened residual norm is
+            ``sqrt(chi2.ppf(robust_quantile, dim))`` for a factor of dimension ``dim``, so an
+            inlier is down-weighted with probability ``1 - robust_quantile`` whatever the
+            factor's size.
+        ring_radius: estimate one ring radius shared by all frames (tight only).
+        landmark_kinds: landmark kinds used in tight coupling.
+        anchor_min_axis_distance_m: a landmark closer than this to the ring axis cannot fix
+            the x axis (same rule as the frontend's ``PoseConfig.min_axis_distance_m``).
+        gauge_sigma_m: standard deviation of the anchor's ``y = 0`` constraint [m]
+            (effectively hard).
+    """
+
+    coupling: Literal["loose", "tight"] = "tight"
+    robust: Literal["none", "huber", "cauchy"] = "cauchy"
+    robust_quantile: float = 0.999
+    ring_radius: bool = True
+    landmark_kinds: tuple[LandmarkKind, ...] = (
+        LandmarkKind.CORNER,
+        LandmarkKind.COMPONENT,
+        LandmarkKind.ORB,
+    )
+    anchor_min_axis_distance_m: float = 0.08
+    gauge_sigma_m: float = 1e-6
+
+    def __post_init__(self) -> None:
+        if self.coupling not in ("loose", "tight"):
+            raise BackendError(f"coupling must be 'loose' or 'tight', got {self.coupling!r}")
+        if self.robust not in ("none", "huber", "cauchy"):
+            raise BackendError(f"robust must be none, huber or cauchy, got {self.robust!r}")
+        if not 0.5 < self.robust_quantile < 1.0:
+            raise BackendError(f"robust_quantile must be in (0.5, 1), got {self.robust_quantile}")
+        if not (self.gauge_sigma_m > 0 and self.anchor_min_axis_distance_m >= 0):
+            raise BackendError("gauge_sigma_m must be positive, anchor distance non-negative")
+        object.__setattr__(
+            self, "landmark_kinds", tuple(LandmarkKind(k) for k in self.landmark_kinds)
+        )
+
+
+@dataclass
+class FactorClock:
+    """Accumulates the time spent inside Python factors (diagnostics for the step report)."""
+
+    seconds: float = 0.0
+    calls: int = 0
+
+    def start(self) -> float:
+        return time.perf_counter()
+
+    def stop(self, t0: float) -> None:
+        self.seconds += time.perf_counter() - t0
+        self.calls += 1
+
+
+@dataclass(frozen=True)
+class StereoRig:
+    """The undistorted rig in GTSAM's terms: left (and right) ``Cal3_S2`` and the right camera's
+    pose in the left camera frame (``left_from_right``)."""
+
+    cal_left: gtsam.Cal3_S2
+    cal_right: gtsam.Cal3_S2 | None = None
+    left_from_right: gtsam.Pose3 | None = None
+
+    @staticmethod
+    def from_calibration(calib: Calibration) -> StereoRig:
+        def cal(K: np.ndarray) -> gtsam.Cal3_S2:
+            return gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2])
+
+        if calib.right is None or calib.right_from_left is None:
+            return StereoRig(cal(calib.left.K))
+        return StereoRig(
+            cal(calib.left.K), cal(calib.right.K), to_pose3(calib.right_from_left.inverse())
+        )
+
+
+def robust(noise: gtsam.noiseModel.Base, dim: int, config: MeasurementConfig) -> Any:
+    """Wrap ``noise`` in the configured robust kernel (threshold from ``robust_quantile``)."""
+    if config.robust == "none":
+        return noise
+    k = math.sqrt(float(chi2.ppf(config.robust_quantile, dim)))
+    est = (
+        gtsam.noiseModel.mEstimator.Huber.Create(k)
+        if config.robust == "huber"
+        else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
+    )
+    return gtsam.noiseModel.Robust.Create(est, noise)
+
+
+# --------------------------------------------------------------------------------------------
+# Loose coupling
+# --------------------------------------------------------------------------------------------
+
+
+def pose_factor(m: PoseMeasurement, i: int, config: MeasurementConfig) -> gtsam.NonlinearFactor:
+    """Prior on ``X(i)`` from a per-frame pose (``T_true = T_meas Exp(xi)``, ``xi ~ N(0, C)``)."""
+    T = m.left_cam_from_target
+    C = pose_covariance_to_state(T, m.covariance)
+    return gtsam.PriorFactorPose3(X(i), to_state(T), robust(gaussian(C), 6, config))
+
+
+# --------------------------------------------------------------------------------------------
+# Tight coupling
+# --------------------------------------------------------------------------------------------
+
+
+def tangent_basis(n: np.ndarray) -> np.ndarray:
+    """(3, 2): two unit vectors completing the unit ``n`` to a right-handed basis."""
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    return np.c_[u, np.cross(n, u)]
+
+
+def ring_covariance(m: RingMeasurement, with_radius: bool) -> np.ndarray:
+    """Covariance (6x6, or 5x5 without radius) of ``[centre, B^T normal, radius]``."""
+    B = tangent_basis(m.normal)
+    G = np.zeros((6, 7))
+    G[0:3, 0:3] = np.eye(3)
+    G[3:5, 3:6] = B.T
+    G[5, 6] = 1.0
+    if not with_radius:
+        G = G[:5]
+    C = G @ m.covariance @ G.T
+    return 0.5 * (C + C.T)
+
+
+def ring_factor(
+    m: RingMeasurement, i: int, config: MeasurementConfig, clock: FactorClock | None = None
+) -> gtsam.CustomFactor:
+    """The ring's centre, normal (and radius) at state ``i`` (see the module docstring).
+
+    With ``X = T^-1``: ``t = -R_X^T t_X`` and ``R e_z = R_X^T e_z =: n``; for ``X Exp(d)``,
+    ``dt/d(theta) = [t]x``, ``dt/d(rho) = -I``, ``dn/d(theta) = [n]x``.
+    """
+    c = np.asarray(m.center_m, float)
+    B = tangent_basis(m.normal)
+    r = float(m.radius_m)
+    with_radius = config.ring_radius
+    dim = 6 if with_radius else 5
+    keys = [X(i), RADIUS] if with_radius else [X(i)]
+    minus_eye = -np.eye(3)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
+        t0 = clock.start() if clock is not None else 0.0
+        ks = this.keys()
+        Xp = values.atPose3(ks[0])
+        Rx = Xp.rotation().matrix()
+        t = -Rx.T @ Xp.translation()
+        n = Rx[2]  # R_X^T e_z
+        e = np.empty(dim)
+        e[0:3] = t - c
+        e[3:5] = B.T @ n
+        if with_radius:
+            e[5] = values.atVector(ks[1])[0] - r
+        if H is not None:
+            Hx = np.zeros((dim, 6), order="F")
+            Hx[0:3, ROT] = skew(t)
+            Hx[0:3, TRANS] = minus_eye
+            Hx[3:5, ROT] = B.T @ skew(n)
+            H[0] = Hx
+            if with_radius:
+                Hr = np.zeros((dim, 1), order="F")
+                Hr[5, 0] = 1.0
+                H[1] = Hr
+        if clock is not None:
+            clock.stop(t0)
+        return e
+
+    noise = robust(gaussian(ring_covariance(m, with_radius)), dim, config)
+    return gtsam.CustomFactor(noise, keys, error)
+
+
+def landmark_factors(
+    m: LandmarkMeasurement, i: int, rig: StereoRig, config: MeasurementConfig
+) -> list[gtsam.NonlinearFactor]:
+    """Reprojection factors of a tracked point on ``(X(i), L(track_id))``: the left image and,
+    for a stereo observation, the right one (GTSAM C++ projection factors; a point behind a
+    camera gives a constant error instead of an exception)."""
+    noise = robust(gtsam.noiseModel.Isotropic.Sigma(2, float(m.sigma_px)), 2, config)
+    out: list[gtsam.NonlinearFactor] = [
+        gtsam.GenericProjectionFactorCal3_S2(
+            np.asarray(m.left_px, float), noise, X(i), L(m.track_id), rig.cal_left, False, False
+        )
+    ]
+    if m.right_px is not None and rig.cal_right is not None and rig.left_from_right is not None:
+        out.append(
+            gtsam.GenericProjectionFactorCal3_S2(
+                np.asarray(m.right_px, float),
+                noise,
+                X(i),
+                L(m.track_id),
+                rig.cal_right,
+                False,
+                False,
+                rig.left_from_right,
+            )
+        )
+    return out
+
+
+def gauge_factor(track_id: int, config: MeasurementConfig) -> gtsam.CustomFactor:
+    """``y = 0`` for the anchor landmark ``L(track_id)`` (fixes the rotation about z)."""
+    H_p = np.asfortranarray(np.array([[0.0, 1.0, 0.0]]))
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
+        p = values.atVector(this.keys()[0])
+        if H is not None:
+            H[0] = H_p
+        return np.array([p[1]])
+
+    return gtsam.CustomFactor(
+        gtsam.noiseModel.Isotropic.Sigma(1, config.gauge_sigma_m), [L(track_id)], error
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# The gauge (target frame) of tight coupling
+# --------------------------------------------------------------------------------------------
+
+KIND_PRIORITY = {LandmarkKind.CORNER: 0, LandmarkKind.COMPONENT: 1, LandmarkKind.ORB: 2}
+
+
+def axis_distance(ring: RingMeasurement, point_m: np.ndarray) -> float:
+    """Distance [m] of a left-frame point from the ring axis."""
+    d = np.asarray(point_m, float) - ring.center_m
+    return float(np.linalg.norm(d - (d @ ring.normal) * ring.normal))
+
+
+def choose_anchor(
+    ring: RingMeasurement, landmarks: tuple[LandmarkMeasurement, ...], config: MeasurementConfig
+) -> LandmarkMeasurement | None:
+    """The landmark that fixes the x axis: the frontend's rule (docs/measurements.md) — among
+    triangulated landmarks far enough from the ring axis, corners before components before
+    ORB features, then the lowest track id."""
+    usable = [
+        lm
+        for lm in landmarks
+        if lm.point_m is not None
+        and lm.kind in config.landmark_kinds
+        and axis_distance(ring, lm.point_m) >= config.anchor_min_axis_distance_m
+    ]
+    if not usable:
+        return None
+    return min(usable, key=lambda lm: (KIND_PRIORITY[lm.kind], lm.track_id))
+
+
+def gauge_pose(ring: RingMeasurement, anchor_point_m: np.ndarray) -> Rigid3:
+    """``left_cam_from_target`` defined by the gauge: origin = ring centre, z = ring normal,
+    x toward the anchor projected on the ring plane (seed 000 eq. 9)."""
+    z = np.asarray(ring.normal, float)
+    d = np.asarray(anchor_point_m, float) - ring.center_m
+    x = d - (d @ z) * z
+    n = np.linalg.norm(x)
+    if n < 1e-9:
+        raise BackendError("the anchor landmark lies on the ring axis")
+    x /= n
+    return Rigid3(R=np.c_[x, np.cross(z, x), z], t=np.asarray(ring.center_m, float))

@@ -1,0 +1,23 @@
+"""GTSAM keys of every variable the backend creates (the only place they are defined).
+
+- ``X(k)``: the left camera's pose in the target frame at frame ``k``, ``target_from_left_cam``
+  (Pose3; the inverse of the ``left_cam_from_target`` the backend reports, see `pose3`).
+- ``V(k)``: body twist ``[omega, v]`` of the target at frame ``k`` (6-vector, target frame).
+- ``L(j)``: landmark with track id ``j`` in the target frame (3-vector) [m].
+- ``R(0)``: the docking ring's radius (1-vector) [m], shared by all frames.
+"""
+
+from __future__ import annotations
+
+import gtsam
+from gtsam.symbol_shorthand import L, R, V, X
+
+__all__ = ["LANDMARK_CHAR", "POSE_CHAR", "RADIUS", "RADIUS_CHAR", "TWIST_CHAR", "L", "V", "X"]
+
+RADIUS = R(0)
+
+# The symbol characters (per-type settings such as iSAM2's relinearisation thresholds).
+POSE_CHAR = chr(gtsam.Symbol(X(0)).chr())
+TWIST_CHAR = chr(gtsam.Symbol(V(0)).chr())
+LANDMARK_CHAR = chr(gtsam.Symbol(L(0)).chr())
+RADIUS_CHAR = chr(gtsam.Symbol(RADIUS).chr())

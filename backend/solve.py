@@ -1,0 +1,97 @@
+"""Batch solves shared by the estimators: Levenberg-Marquardt and marginal covariances.
+
+GTSAM's `Marginals` factorises with Cholesky. While the twist is known only from its weak
+first prior (fewer than two frames that fix a pose), the information matrix spans ~12 orders
+of magnitude (the prior's 1 rad/s against the motion prior's mrad, times the 5-7 m lever arm
+of the camera) and Cholesky can fail on rounding; `marginal_covariances` then falls back to a
+dense QR of the whitened Jacobian, which only needs the Jacobian's condition (~1e6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from satpose.backend.errors import BackendError
+
+
+@dataclass(frozen=True)
+class Solution:
+    """A batch solution: the values, the optimizer's iteration count and the final error."""
+
+    values: gtsam.Values
+    iterations: int
+    error: float
+
+
+def levenberg_marquardt(
+    graph: gtsam.NonlinearFactorGraph,
+    initial: gtsam.Values,
+    max_iterations: int,
+    relative_error_tol: float,
+    absolute_error_tol: float,
+) -> Solution:
+    """Levenberg-Marquardt from ``initial`` (GTSAM's defaults otherwise)."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(relative_error_tol)
+    params.setAbsoluteErrorTol(absolute_error_tol)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+    values = optimizer.optimize()
+    return Solution(values, optimizer.iterations(), graph.error(values))
+
+
+class Covariances:
+    """Marginal and joint covariances of a solved graph (in each variable's tangent space)."""
+
+    def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        self._marginals: gtsam.Marginals | None = None
+        self._dense: np.ndarray | None = None
+        self._index: dict[int, slice] = {}
+        try:
+            self._marginals = gtsam.Marginals(graph, values)
+        except RuntimeError:
+            self._dense_covariance(graph, values)
+
+    def _dense_covariance(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        ordering = gtsam.Ordering()
+        start = 0
+        for key in values.keys():
+            ordering.push_back(key)
+            dim = values.atVector(key).size if _is_vector(values, key) else 6
+            self._index[key] = slice(start, start + dim)
+            start += dim
+        A, _ = graph.linearize(values).jacobian(ordering)
+        if A.shape[0] < A.shape[1]:
+            raise BackendError("the estimate is not determined (fewer residuals than unknowns)")
+        R: np.ndarray = np.linalg.qr(A, mode="r")  # type: ignore[assignment]
+        if np.min(np.abs(np.diag(R))) <= 1e-12 * np.abs(R).max():
+            raise BackendError("the estimate is not determined (singular information matrix)")
+        Rinv = np.linalg.solve(R, np.eye(R.shape[0]))
+        self._dense = Rinv @ Rinv.T
+
+    def marginal(self, key: int) -> np.ndarray:
+        """Marginal covariance of one variable."""
+        if self._marginals is not None:
+            return np.asarray(self._marginals.marginalCovariance(key), float)
+        assert self._dense is not None
+        s = self._index[key]
+        return self._dense[s, s].copy()
+
+    def joint(self, keys: list[int]) -> list[list[np.ndarray]]:
+        """Joint marginal covariance of ``keys`` as a nested list of blocks."""
+        if self._marginals is not None:
+            J = self._marginals.jointMarginalCovariance(gtsam.KeyVector(keys))
+            return [[np.asarray(J.at(a, b), float) for b in keys] for a in keys]
+        assert self._dense is not None
+        return [[self._dense[self._index[a], self._index[b]] for b in keys] for a in keys]
+
+
+def _is_vector(values: gtsam.Values, key: int) -> bool:
+    try:
+        values.atPose3(key)
+    except RuntimeError:
+        return True
+    return False

@@ -1,0 +1,343 @@
+"""The three estimators end to end on simulated measurements: consistency (NEES), batch vs
+iSAM2, missing frames, the first frames, outliers, spin axis and rate.
+
+Estimators start from the measurements (never from the truth). Two kinds of simulated data
+(tests/backend/conftest.py):
+
+- ``exact``: a truth drawn from the motion prior and measurements with exactly the Gaussian
+  noise each factor assumes — the estimator's model is then exactly right, so its NEES must
+  follow the chi-square distribution;
+- ``frontend``: the preset's own (deterministic) truth through the frontend's simulator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from satpose.backend import (
+    BackendConfig,
+    BackendError,
+    Estimate,
+    MeasurementConfig,
+    OfflineEstimator,
+    StepReport,
+    make_estimator,
+)
+from satpose.backend.pose3 import exp, local_error, tangent
+from satpose.datasets.config import from_plain
+from satpose.datasets.errors import ConfigError
+from satpose.datasets.geometry import Rigid3, rotation_angle
+from satpose.frontend.measurements import FrameMeasurements
+
+FRAMES = 30
+
+
+def _config(coupling: str, robust: str = "cauchy") -> BackendConfig:
+    return BackendConfig(
+        measurements=MeasurementConfig(coupling=coupling, robust=robust)  # type: ignore[arg-type]
+    )
+
+
+def _run(name: str, case, config: BackendConfig, measurements=None):  # type: ignore[no-untyped-def]
+    est = make_estimator(name, case.calib, config)  # type: ignore[arg-type]
+    for m in case.measurements if measurements is None else measurements:
+        est.add(m)
+    return est
+
+
+def _errors(est: Estimate, case) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[no-untyped-def]
+    """Right-perturbation pose errors ``Log(T_est^-1 T_true)`` and twist errors
+    ``twist_true - twist_est`` (the sign that matches the covariance's perturbation)."""
+    e = np.array(
+        [local_error(p, T) for p, T in zip(est.left_cam_from_target, case.poses, strict=True)]
+    )
+    return e, case.twists - est.twist
+
+
+def _nees(e: np.ndarray, C: np.ndarray) -> np.ndarray:
+    return np.einsum("ni,ni->n", e, np.linalg.solve(C, e[..., None])[..., 0])
+
+
+# --------------------------------------------------------------------------------------------
+# Consistency
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("coupling", ["loose", "tight"])
+@pytest.mark.parametrize("preset_name", ["paper-docking", "tumble"])
+def test_smoother_nees_is_chi_square(preset_name: str, coupling: str, cases) -> None:  # type: ignore[no-untyped-def]
+    """Joint NEES of the whole smoothed trajectory. Frames are correlated through the motion
+    prior, so the per-frame NEES values are not independent; the joint error over all frames,
+    ``e^T P^-1 e`` with ``P`` the joint marginal covariance (6N x 6N poses, 12N x 12N poses
+    and twists), is chi-square with 6N (12N) degrees of freedom if the estimator is
+    consistent. Pooled over three independent runs (sum of the three, 3x the degrees of
+    freedom); 95% interval ``chi2.ppf([0.025, 0.975], dof)``."""
+    totals = {"pose": [0.0, 0], "state": [0.0, 0]}
+    for seed in (21, 22, 23):
+        case = cases("exact", preset_name, FRAMES, seed)
+        est = _run("offline", case, _config(coupling, robust="none"))
+        assert isinstance(est, OfflineEstimator)
+        e, te = _errors(est.estimate(), case)
+        for which, err in (("pose", e), ("state", np.hstack([e, te]))):
+            v = err.reshape(-1)
+            P = est.joint_covariance(which)  # type: ignore[arg-type]
+            totals[which][0] += float(v @ np.linalg.solve(P, v))
+            totals[which][1] += v.size
+    for which, (nees, dof) in totals.items():
+        lo, hi = chi2.ppf([0.025, 0.975], dof)
+        assert lo < nees < hi, (which, nees / dof, lo / dof, hi / dof)
+
+
+def _average_nees_upper_bound(P: np.ndarray, dim: int) -> float:
+    """97.5% quantile of the frame-averaged NEES ``(1/N) sum_k e_k^T P_kk^-1 e_k`` when
+    ``e ~ N(0, P)`` with ``P`` the joint (correlated) covariance, by Satterthwaite's scaled
+    chi-square with the exact mean (``dim``) and variance ``2 tr((M P)^2) / N^2``,
+    ``M = blockdiag(P_kk^-1)``."""
+    n = P.shape[0] // dim
+    M = np.zeros_like(P)
+    for k in range(n):
+        b = slice(dim * k, dim * (k + 1))
+        M[b, b] = np.linalg.inv(P[b, b])
+    A = M @ P
+    var = 2.0 * np.trace(A @ A) / n**2
+    scale, dof = var / (2.0 * dim), 2.0 * dim**2 / var
+    return float(scale * chi2.ppf(0.975, dof))
+
+
+@pytest.mark.parametrize("preset_name", ["paper-docking", "tumble"])
+def test_average_nees_on_the_presets_is_not_optimistic(preset_name: str, cases) -> None:  # type: ignore[no-untyped-def]
+    """On the presets' own truth (deterministic: constant body spin, straight-line centroid)
+    the default process noise over-covers what the truth does, so the estimators must be
+    consistent or conservative: the average pose and twist NEES stay below the upper end of
+    their 95% interval. The interval accounts for the correlation between frames (in tight
+    coupling the gauge — the anchor's azimuth — is one error shared by every frame):
+    `_average_nees_upper_bound` from the smoother's joint covariance; for the filters (loose,
+    weakly correlated) the independent-frame bound ``chi2.ppf(0.975, 6N) / N``."""
+    case = cases("frontend", preset_name, FRAMES, 7)
+    independent = chi2.ppf(0.975, 6 * FRAMES) / FRAMES
+    for coupling in ("loose", "tight"):
+        smoother = _run("offline", case, _config(coupling))
+        assert isinstance(smoother, OfflineEstimator)
+        bounds = {
+            "pose": _average_nees_upper_bound(smoother.joint_covariance("pose"), 6),
+            "twist": _average_nees_upper_bound(smoother.joint_covariance("twist"), 6),
+        }
+        online = _run("online", case, _config(coupling))
+        outputs = {"offline": (smoother.estimate(), bounds), "online": (online.estimate(), bounds)}
+        if coupling == "loose":
+            filtered = {"pose": independent, "twist": independent}
+            outputs["online filtered"] = (online.filtered(), filtered)  # type: ignore[union-attr]
+            outputs["kalman"] = (_run("kalman", case, _config(coupling)).estimate(), filtered)
+        for label, (out, hi) in outputs.items():
+            e, te = _errors(out, case)
+            pose_nees = _nees(e, out.pose_covariance).mean()
+            twist_nees = _nees(te, out.twist_covariance).mean()
+            assert pose_nees < hi["pose"], (label, coupling, pose_nees, hi)
+            assert twist_nees < hi["twist"], (label, coupling, twist_nees, hi)
+
+
+def test_batch_and_final_isam2_agree(cases) -> None:  # type: ignore[no-untyped-def]
+    """Same graph, same optimum. Two tolerance tiers, per component in units of the batch
+    estimate's own sigma: without a robust kernel iSAM2 converges to the batch solution up to
+    its relinearisation thresholds (0.02 sigma; measured 0.003). With the default Cauchy kernel
+    the weights depend continuously on the residuals and iSAM2 recomputes them only for
+    variables it relinearises (0.2 sigma; measured 0.12). Sigmas: 1% without kernel
+    (measured 0.1%), 5% with Cauchy, whose weights (and so the information) move with those
+    residuals (measured up to 3%)."""
+    case = cases("frontend", "tumble", FRAMES, 3)
+    for robust, tol, sigma_rtol in (("none", 0.02, 0.01), ("cauchy", 0.2, 0.05)):
+        for coupling in ("loose", "tight"):
+            batch = _run("offline", case, _config(coupling, robust)).estimate()
+            final = _run("online", case, _config(coupling, robust)).estimate()
+            for i in range(FRAMES):
+                d = local_error(batch.left_cam_from_target[i], final.left_cam_from_target[i])
+                assert np.all(np.abs(d) < tol * batch.pose_sigmas()[i]), (robust, coupling, i)
+                dt = final.twist[i] - batch.twist[i]
+                assert np.all(np.abs(dt) < tol * batch.twist_sigmas()[i]), (robust, coupling, i)
+            np.testing.assert_allclose(final.pose_sigmas(), batch.pose_sigmas(), rtol=sigma_rtol)
+            np.testing.assert_allclose(final.twist_sigmas(), batch.twist_sigmas(), rtol=sigma_rtol)
+
+
+# --------------------------------------------------------------------------------------------
+# Missing data and the first frames
+# --------------------------------------------------------------------------------------------
+
+
+def _drop(ms: list[FrameMeasurements], frames: set[int]) -> list[FrameMeasurements]:
+    return [
+        FrameMeasurements(frame=m.frame, t_s=m.t_s, failures=("dropped",))
+        if m.frame in frames
+        else m
+        for m in ms
+    ]
+
+
+@pytest.mark.parametrize("coupling", ["loose", "tight"])
+def test_frames_without_measurements_are_predicted(coupling: str, cases) -> None:  # type: ignore[no-untyped-def]
+    case = cases("frontend", "paper-docking", FRAMES, 5)
+    gap = {10, 11, 12, 13}
+    ms = _drop(case.measurements, {0, 1} | gap | {FRAMES - 1})  # leading, middle, last
+    for name in ("offline", "online", "kalman"):
+        est = _run(name, case, _config(coupling), ms)
+        outputs = {"estimate": est.estimate()}
+        if name == "online":
+            outputs["filtered"] = est.filtered()  # type: ignore[union-attr]
+        for label, out in outputs.items():
+            assert len(out) == FRAMES and list(out.frame) == list(range(FRAMES))
+            s = out.pose_sigmas()
+            # uncertainty grows into the gap: the filter's only grows, the smoother's peaks
+            # in the middle; and the last frame (no measurement) is less certain than the one
+            # before it
+            assert s[12, 5] > 1.2 * s[9, 5], (name, label)
+            assert s[FRAMES - 1, 5] > s[FRAMES - 2, 5], (name, label)
+            e, _ = _errors(out, case)
+            nees = _nees(e, out.pose_covariance)
+            # predicted frames stay consistent: each within the chi2(6) 99.9% bound
+            assert np.all(nees[sorted(gap)] < chi2.ppf(0.999, 6)), (name, label, nees)
+
+
+@pytest.mark.parametrize("coupling", ["loose", "tight"])
+def test_first_frames_are_determined(coupling: str, cases) -> None:  # type: ignore[no-untyped-def]
+    case = cases("frontend", "tumble", FRAMES, 5)
+    cfg = _config(coupling)
+    for name in ("offline", "online", "kalman"):
+        est = make_estimator(name, case.calib, cfg)  # type: ignore[arg-type]
+        with pytest.raises(BackendError, match="no frame with usable measurements"):
+            est.estimate()
+        est.add(case.measurements[0])
+        one = est.estimate()  # one frame: the twist is only its prior
+        prior = cfg.motion.first_angular_rate_sigma_rad_s
+        assert one.twist_sigmas()[0, 0] == pytest.approx(prior, rel=1e-3)
+        est.add(case.measurements[1])
+        two = est.estimate()  # two frames determine the twist, to within the pose noise
+        assert two.twist_sigmas()[1, 0] < 0.02 * prior
+        assert len(two) == 2
+
+
+def test_frame_times_must_increase(cases) -> None:  # type: ignore[no-untyped-def]
+    case = cases("frontend", "tumble", FRAMES, 5)
+    for name in ("offline", "online", "kalman"):
+        est = make_estimator(name, case.calib)  # type: ignore[arg-type]
+        est.add(case.measurements[1])
+        with pytest.raises(BackendError, match="does not follow"):
+            est.add(case.measurements[0])
+
+
+# --------------------------------------------------------------------------------------------
+# Outliers
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["offline", "online"])
+def test_robust_kernel_down_weights_an_outlier_pose(name: str, cases) -> None:
+    case = cases("frontend", "paper-docking", FRAMES, 5)
+    k = 15
+    m = case.measurements[k]
+    assert m.pose is not None
+    bad = exp(m.pose.left_cam_from_target, tangent(np.radians([3.0, -2.0, 5.0]), [0.1, -0.05, 0.2]))
+    ms = list(case.measurements)
+    ms[k] = replace(m, pose=replace(m.pose, left_cam_from_target=bad))
+    errors = {}
+    for robust in ("none", "huber", "cauchy"):
+        out = _run(name, case, _config("loose", robust), ms).estimate()
+        e, _ = _errors(out, case)
+        errors[robust] = _nees(e, out.pose_covariance)[k]
+    # Without a kernel the outlier (5 deg, 23 cm off) drags the estimate far outside its
+    # covariance. Huber bounds its pull but, linear in the residual, still moves a frame whose
+    # only measurement it is by ~k sigma_motion^2 / sigma_meas; the redescending Cauchy kernel
+    # ignores it: the frame stays consistent (chi2(6) 99.9% bound).
+    assert errors["none"] > 100
+    assert errors["huber"] < 0.7 * errors["none"]
+    assert errors["cauchy"] < chi2.ppf(0.999, 6)
+
+
+# --------------------------------------------------------------------------------------------
+# Motion outputs
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("preset_name", ["paper-docking", "tumble"])
+def test_spin_axis_and_rate_are_recovered(preset_name: str, cases) -> None:  # type: ignore[no-untyped-def]
+    case = cases("frontend", preset_name, FRAMES, 9)
+    true_axis = case.twists[0, :3] / np.linalg.norm(case.twists[0, :3])
+    dt = float(np.median(np.diff(case.t_s)))
+    true_rate = np.degrees(np.linalg.norm(case.twists[0, :3])) * dt  # deg per frame
+    for coupling in ("loose", "tight"):
+        for name in ("offline", "online"):
+            out = _run(name, case, _config(coupling)).estimate()
+            # the issue's target: spin rate within 0.1 deg/frame at every frame
+            assert np.abs(out.spin_rate_deg_per_frame() - true_rate).max() < 0.1
+            axis_err = np.degrees(np.arccos(np.clip(out.spin_axis() @ true_axis, -1, 1)))
+            assert axis_err.max() < 2.0, axis_err.max()  # 2 deg: several sigma on tumble
+            z = (out.spin_rate_rad_s() - np.linalg.norm(case.twists[:, :3], axis=1)) / (
+                out.spin_rate_sigma_rad_s()
+            )
+            assert np.abs(z).max() < 4.0  # within its own 1-sigma bound x 4
+
+
+def test_estimate_helpers() -> None:
+    w = np.array([0.0, 0.0, np.radians(2.0)])
+    T = Rigid3.from_rotvec([0.0, np.pi / 2, 0.0], [0.0, 0.0, 5.0])
+    C = np.diag([4e-6, 1e-6, 9e-6, 1e-4, 1e-4, 1e-4])
+    est = Estimate(
+        frame=[0, 1],
+        t_s=[0.0, 5.0],
+        left_cam_from_target=(T, T),
+        twist=np.tile(np.r_[w, 0.01, 0.0, 0.0], (2, 1)),
+        pose_covariance=np.stack([C, C]),
+        twist_covariance=np.stack([C, C]),
+    )
+    np.testing.assert_allclose(est.spin_rate_deg_per_frame(), [10.0, 10.0])
+    np.testing.assert_allclose(est.spin_axis()[0], [0, 0, 1])
+    np.testing.assert_allclose(est.spin_axis_cam()[0], T.R[:, 2], atol=1e-12)
+    np.testing.assert_allclose(est.spin_rate_sigma_rad_s(), [3e-3, 3e-3])  # sigma along z
+    np.testing.assert_allclose(est.pose_sigmas()[0], np.sqrt(np.diag(C)))
+    np.testing.assert_allclose(est.origin_velocity_cam()[0], T.R @ [0.01, 0, 0], atol=1e-15)
+    assert rotation_angle(est.left_cam_from_target[1].R) == pytest.approx(np.pi / 2)
+    with pytest.raises(BackendError, match="twist"):
+        replace(est, twist=np.zeros((2, 5)))
+    with pytest.raises(BackendError, match="NaN"):
+        replace(est, pose_covariance=np.full((2, 6, 6), np.nan))
+
+
+def test_config_loads_by_key_and_rejects_unknown_keys() -> None:
+    cfg = from_plain(
+        BackendConfig,
+        {
+            "motion": {"angular_accel_noise_rad_s2_rthz": 2e-4},
+            "measurements": {"coupling": "loose", "robust": "cauchy"},
+            "online": {"relinearize_rotation": 0.01},
+        },
+    )
+    assert cfg.motion.angular_accel_noise_rad_s2_rthz == 2e-4
+    assert cfg.measurements.coupling == "loose" and cfg.measurements.robust == "cauchy"
+    with pytest.raises(ConfigError, match="unknown key"):
+        from_plain(BackendConfig, {"motion": {"spin": 1.0}})
+    with pytest.raises(ConfigError, match="positive"):
+        from_plain(BackendConfig, {"motion": {"linear_accel_noise_m_s2_rthz": -1.0}})
+    with pytest.raises(BackendError, match="unknown estimator"):
+        make_estimator("ekf", None)  # type: ignore[arg-type]
+
+
+def test_hook_reports_every_step(cases) -> None:  # type: ignore[no-untyped-def]
+    case = cases("frontend", "tumble", FRAMES, 5)
+    ms = _drop(case.measurements[:6], {3})
+    for name in ("offline", "online", "kalman"):
+        reports: list[StepReport] = []
+        est = make_estimator(name, case.calib, _config("tight"), hook=reports.append)  # type: ignore[arg-type]
+        for m in ms:
+            est.add(m)
+        est.estimate()
+        adds = [r for r in reports if r.step == "add"]
+        assert [r.frame for r in adds] == [m.frame for m in ms]
+        assert any("prediction only" in r.notes for r in adds if r.frame == 3)
+        assert all(r.timings_ms and min(r.timings_ms.values()) >= 0 for r in reports)
+        if name == "online":  # the first frame is solved in batch (warm-up), then iSAM2
+            assert any("warm-up" in note for note in adds[0].notes)
+            assert all(r.factors > 0 and r.relinearized is not None for r in adds[1:])
+        if name == "offline":
+            assert [r.step for r in reports][-1] == "optimize" and reports[-1].iterations
