@@ -86,9 +86,18 @@ class EllipseDetectorConfig:
         segment_turn_deg: a chain is cut into segments whose gradient direction spans this
             angle [deg] (LSD's region growing tolerance is 22.5 deg).
         min_segment_px: shortest segment kept [edge pixels].
-        min_arc_turn_deg: a segment is arc-support when the mean gradient directions of its
-            two halves differ by at least this [deg] (Lu et al. require 2.25 deg per half);
-            a 22.5 deg segment of any circle turns ~11 deg between halves, a straight edge ~0.
+        min_arc_turn_deg: a segment is arc-support when it bends by at least this [deg] over
+            half its length (from the curvature of its sub-pixel points; Lu et al. require the
+            gradient directions of the halves to turn by 2.25 deg each); a 22.5 deg piece of
+            any circle turns ~11 deg, a straight edge ~0. It may not turn by more than
+            `segment_turn_deg`, and its gradient not by more than this against the bend.
+        mixed_polarity: link and pair arcs whatever their polarity (only their convexity must
+            agree) instead of Lu et al.'s rule (one polarity per group and pair). The ring's
+            outer front edge is brighter or darker than the foil beyond it depending on the
+            facet, but on the rendered sequences the rule still finds it more often and with
+            fewer false positives (docs/ellipse_detector.md).
+        max_arc_rms_px: largest RMS residual of a segment's pixels from a quadratic curve
+            [px]; rim arcs have 0.05-0.2 px, pieces spanning a foil corner 0.5 px and more.
         link_gap_px: largest gap between the end of a segment and the start of the next one in
             a group [px] (Lu et al. search a 4x4 window beyond the end point).
         link_max_turn_deg: largest turn of direction between consecutive segments of a group
@@ -118,8 +127,10 @@ class EllipseDetectorConfig:
         max_candidates: at most this many clustered candidates (strongest first) are verified.
         normal_tolerance_deg: an edge pixel supports an ellipse when its gradient is within
             this angle [deg] of the ellipse normal, either sign (22.5 deg in Lu et al.).
-        gather_tolerance_px: distance tolerance of the first verification pass [px]: initial
-            ellipses from two short arcs can be off by a pixel or two elsewhere.
+        grow_fraction: the first verification pass gathers edge pixels within this fraction of
+            the semi-major axis (at least `gather_tolerance_px`) and refits: an initial ellipse
+            from a 110 deg arc of the ring can be 5-10 px off on the far side.
+        gather_tolerance_px: distance tolerance of the second verification pass [px].
         inlier_tolerance_px: distance tolerance of the final passes [px].
         support_bin_px: perimeter bin length for the support fraction [px]; 2 px so that the
             8-connected pixels of a continuous edge (spacing up to sqrt 2) fill every bin.
@@ -147,6 +158,8 @@ class EllipseDetectorConfig:
     segment_turn_deg: float = 22.5
     min_segment_px: int = 6
     min_arc_turn_deg: float = 3.0
+    max_arc_rms_px: float = 0.4
+    mixed_polarity: bool = False
     link_gap_px: float = 8.0
     link_max_turn_deg: float = 67.5
     link_turn_ratio: float = 2.0
@@ -164,6 +177,7 @@ class EllipseDetectorConfig:
     cluster_angle_deg: float = 10.0
     max_candidates: int = 24
     normal_tolerance_deg: float = 22.5
+    grow_fraction: float = 0.06
     gather_tolerance_px: float = 2.0
     inlier_tolerance_px: float = 1.0
     support_bin_px: float = 2.0
@@ -184,6 +198,7 @@ class EllipseDetectorConfig:
             "chain_angle_deg": self.chain_angle_deg,
             "segment_turn_deg": self.segment_turn_deg,
             "link_gap_px": self.link_gap_px,
+            "max_arc_rms_px": self.max_arc_rms_px,
             "link_max_turn_deg": self.link_max_turn_deg,
             "link_turn_ratio": self.link_turn_ratio,
             "pair_tolerance_px": self.pair_tolerance_px,
@@ -208,6 +223,7 @@ class EllipseDetectorConfig:
             "cluster_rel": self.cluster_rel,
             "cluster_angle_deg": self.cluster_angle_deg,
             "min_run_px": self.min_run_px,
+            "grow_fraction": self.grow_fraction,
             "duplicate_center_px": self.duplicate_center_px,
             "duplicate_axis_px": self.duplicate_axis_px,
         }
@@ -328,12 +344,12 @@ def detect_ellipses(
     if segs.m == 0:
         return []
     groups = _group_segments(segs, config)
-    cands, weights = _initial_ellipses(segs, groups, config, max_a)
+    cands, weights, salient = _initial_ellipses(segs, groups, config, max_a)
     if len(cands) == 0:
         return []
-    cands, weights = _cluster(cands, weights, config)
+    cands, weights, salient = _cluster(cands, weights, salient, config)
     index = _EdgeIndex.build(edges)
-    cands = _screen(cands, weights, index, config)
+    cands = _screen(cands, weights, salient, index, config)
     found = _verify(cands, index, config, max_a)
     out = []
     for f in found:
@@ -500,12 +516,12 @@ class _Segments:
     n: np.ndarray  # edge pixels
     cx: np.ndarray  # centroid [px]
     cy: np.ndarray
-    tx: np.ndarray  # unit tangent = mean gradient rotated by +90 deg
+    tx: np.ndarray  # unit direction d: along it the arc turns clockwise (image coordinates)
     ty: np.ndarray
-    length: np.ndarray  # extent along the tangent [px]
-    turn: np.ndarray  # signed turn between the halves [rad] (> 0: counter-clockwise)
+    length: np.ndarray  # extent along d [px]
+    turn: np.ndarray  # turn between the two halves [rad], > 0
     polarity: np.ndarray  # +1 brighter on the inner (concave) side, -1 darker
-    start: np.ndarray  # (M, 2) first pixel along the tangent
+    start: np.ndarray  # (M, 2) first pixel along d
     end: np.ndarray  # (M, 2) last pixel
     samples: np.ndarray  # (M, 3, 2) start, middle, end pixel positions
     sample_grad: np.ndarray  # (M, 3, 2) their unit gradients
@@ -588,8 +604,10 @@ def _arc_segments(E: _Edges, cfg: EllipseDetectorConfig) -> _Segments:
     flip = u0 > u1
     i0, i1 = np.where(flip, i1, i0), np.where(flip, i0, i1)
     length = np.abs(u1 - u0)
-    # Turning between the halves (chain order, oriented): angle from the first half's mean
-    # gradient to the second half's.
+    # Turning between the halves (chain order, oriented along t): angle from the first half's
+    # mean gradient to the second half's. Near the ring the foil perturbs the gradient
+    # direction by ~5 deg over 5-10 px, so on short pieces this only detects corners (a turn
+    # larger than a piece can span) and contradictions.
     pos = np.arange(s.size) - bounds[s]
     half = cntf[s] / 2
     second = np.where(flip[s], pos < half, pos >= half)
@@ -597,12 +615,42 @@ def _arc_segments(E: _Edges, cfg: EllipseDetectorConfig) -> _Segments:
     ly = np.bincount(s, np.where(second, 0.0, gy), minlength=m)
     hx = np.bincount(s, np.where(second, gx, 0.0), minlength=m)
     hy = np.bincount(s, np.where(second, gy, 0.0), minlength=m)
-    turn = np.arctan2(lx * hy - ly * hx, lx * hx + ly * hy)
-    # Arc-support: the halves turn one way, by more than noise and by no more than a piece
-    # can span (more means a corner, or a wiggle, inside the piece).
+    grad_turn = np.arctan2(lx * hy - ly * hx, lx * hx + ly * hy)
+    # The curvature itself comes from the sub-pixel positions: a quadratic v = c0 + c1 u +
+    # c2 u^2 in the frame (u along t, v along the mean gradient). c2 > 0 bends the piece
+    # towards its gradient, i.e. its centre of curvature is on the bright side. Half the turn
+    # across the piece is c2 * length (a 24 px piece of a 64 px circle: 1.1 px sagitta,
+    # measured to ~0.15 px).
+    u = (x - cx[s]) * tx[s] + (y - cy[s]) * ty[s]
+    v = (x - cx[s]) * ty[s] - (y - cy[s]) * tx[s]
+    uu = u * u
+    sums = [np.bincount(s, w_, minlength=m) for w_ in (u, uu, uu * u, uu * uu, v, u * v, uu * v)]
+    su, su2, su3, su4, sv, suv, su2v = sums
+    A = np.stack(
+        [
+            np.stack([cntf, su, su2], axis=1),
+            np.stack([su, su2, su3], axis=1),
+            np.stack([su2, su3, su4], axis=1),
+        ],
+        axis=1,
+    )
+    rhs = np.stack([sv, suv, su2v], axis=1)
+    ok_fit = np.abs(np.linalg.det(A)) > 1e-9 * np.maximum(su4 * su2 * cntf, 1e-300)
+    A[~ok_fit] = np.eye(3)
+    coef = np.linalg.solve(A, rhs[..., None])[..., 0]
+    sv2 = np.bincount(s, v * v, minlength=m)
+    rms = np.sqrt(np.maximum(sv2 - np.einsum("ij,ij->i", coef, rhs), 0.0) / cntf)
+    turn = coef[:, 2] * length
+    # Arc-support: bent by more than noise, no more than a piece can span, smooth (a corner
+    # or a wiggle leaves residuals), and the gradient does not turn against the bend.
+    pol_geo = np.where(turn > 0, 1.0, -1.0)
     arc = (
-        (np.abs(turn) >= math.radians(cfg.min_arc_turn_deg))
+        ok_fit
+        & (np.abs(turn) >= math.radians(cfg.min_arc_turn_deg))
         & (np.abs(turn) <= w)
+        & (np.abs(grad_turn) <= w)
+        & (pol_geo * grad_turn <= math.radians(cfg.min_arc_turn_deg))
+        & (rms <= cfg.max_arc_rms_px)
         & (length >= cfg.min_segment_px - 1)
     )
     if not arc.any():
@@ -614,20 +662,27 @@ def _arc_segments(E: _Edges, cfg: EllipseDetectorConfig) -> _Segments:
     moments = _moment_sums(x[on] - cx[s[on]], y[on] - cy[s[on]], relabel[s[on]], keep.size)
     pts = np.stack([x, y], axis=1)
     grd = np.stack([gx, gy], axis=1)
-    idx3 = np.stack([i0[keep], imid[keep], i1[keep]], axis=1)
-    # Polarity: a bright-inside arc (gradient towards the centre) turns clockwise in image
-    # coordinates (y down) when followed along the tangent = gradient rotated by +90 deg.
+    # Polarity: a bright-inside arc (c2 > 0: gradient towards its centre of curvature) turns
+    # clockwise in image coordinates (y down) when followed along t = gradient rotated by
+    # +90 deg; a dark-inside arc turns counter-clockwise. Followed along d = polarity * t
+    # instead, every arc of a convex curve turns clockwise whatever its polarity, and its inner
+    # normal is d rotated by -90 deg: the geometry used from here on.
+    pol = np.where(turn[keep] > 0, 1, -1).astype(np.int64)
+    k0, k1 = i0[keep], i1[keep]
+    rev = pol < 0
+    k0, k1 = np.where(rev, k1, k0), np.where(rev, k0, k1)
+    idx3 = np.stack([k0, imid[keep], k1], axis=1)
     return _Segments(
         n=cntf[keep],
         cx=cx[keep],
         cy=cy[keep],
-        tx=tx[keep],
-        ty=ty[keep],
+        tx=pol * tx[keep],
+        ty=pol * ty[keep],
         length=length[keep],
-        turn=turn[keep],
-        polarity=np.where(turn[keep] < 0, 1, -1).astype(np.int64),
-        start=pts[i0[keep]],
-        end=pts[i1[keep]],
+        turn=np.abs(turn[keep]),
+        polarity=pol,
+        start=pts[k0],
+        end=pts[k1],
         samples=pts[idx3],
         sample_grad=grd[idx3],
         moments=moments,
@@ -860,10 +915,12 @@ def _group_segments(S: _Segments, cfg: EllipseDetectorConfig) -> _Groups:
         i = pairs["i"].astype(np.intp)
         j = pairs["j"].astype(np.intp)
         gap = pairs["v"]
-        ok = (i != j) & (S.polarity[i] == S.polarity[j])
+        ok = i != j
+        if not cfg.mixed_polarity:
+            ok &= S.polarity[i] == S.polarity[j]
         i, j, gap = i[ok], j[ok], gap[ok]
-        # Bright inside (+1) turns clockwise: the turn in the group's sense is -p * turn.
-        tau = -S.polarity[i] * _wrap(alpha[j] - alpha[i])
+        # Along d an arc of a convex curve turns clockwise: the turn in that sense is -turn.
+        tau = -_wrap(alpha[j] - alpha[i])
         txi, tyi = S.tx[i], S.ty[i]
         ahead_start = (S.start[j, 0] - S.end[i, 0]) * txi + (S.start[j, 1] - S.end[i, 1]) * tyi
         ahead_end = (S.end[j, 0] - S.end[i, 0]) * txi + (S.end[j, 1] - S.end[i, 1]) * tyi
@@ -931,16 +988,17 @@ def _group_segments(S: _Segments, cfg: EllipseDetectorConfig) -> _Groups:
     cy = np.bincount(gid, S.n * S.cy, minlength=ng) / npix
     # Total turn: half of the first and last segments' spans plus the turns between them.
     coverage = (
-        np.bincount(gid, np.maximum(turn_in, 0.0), minlength=ng)
-        + np.abs(S.turn[first])
-        + np.abs(S.turn[last])
+        np.bincount(gid, np.maximum(turn_in, 0.0), minlength=ng) + S.turn[first] + S.turn[last]
     )
+    # A group's polarity is its segments' when they all agree, else 0 (mixed).
+    pol_sum = np.bincount(gid, S.polarity, minlength=ng)
+    polarity = np.where(np.abs(pol_sum) == size, np.sign(pol_sum), 0).astype(np.int64)
     shifted = _translate_moments(S.moments, S.cx - cx[gid], S.cy - cy[gid])
     moments = np.stack([np.bincount(gid, shifted[:, k], minlength=ng) for k in range(15)], 1)
     return _Groups(
         order=order,
         offset=offset,
-        polarity=S.polarity[first],
+        polarity=polarity,
         npix=npix,
         length=length,
         coverage=coverage,
@@ -960,8 +1018,9 @@ def _group_segments(S: _Segments, cfg: EllipseDetectorConfig) -> _Groups:
 
 def _initial_ellipses(
     S: _Segments, G: _Groups, cfg: EllipseDetectorConfig, max_a: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Initial ellipses (K, 5) ``[cx, cy, a, b, theta]`` and their weights (pixels used)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Initial ellipses (K, 5) ``[cx, cy, a, b, theta]``, their weights (pixels used) and
+    whether each comes from a single salient group (K,) bool."""
     tol = cfg.pair_tolerance_px
     # Salient single groups.
     single = np.flatnonzero(
@@ -973,14 +1032,15 @@ def _initial_ellipses(
         pool = pool[np.argsort(-G.npix[pool], kind="stable")[: cfg.max_pair_groups]]
     a_idx, b_idx = np.triu_indices(pool.size, k=1)
     g1, g2 = pool[a_idx], pool[b_idx]
-    # One polarity, and no farther apart than an ellipse through both allows: two points of
+    # No farther apart than an ellipse through both allows (and of one polarity unless
+    # `mixed_polarity`): two points of
     # an ellipse are at most 2a apart, and a <= the largest radius of curvature a^2 / b,
     # estimated from each group's length and turn (generously: short arcs turn noisily).
     radius = G.length / np.maximum(G.coverage, 1e-3)
     dist = np.hypot(G.cx[g1] - G.cx[g2], G.cy[g1] - G.cy[g2])
-    ok = (G.polarity[g1] == G.polarity[g2]) & (
-        dist <= 3.0 * np.maximum(radius[g1], radius[g2]) + 2 * tol
-    )
+    ok = dist <= 3.0 * np.maximum(radius[g1], radius[g2]) + 2 * tol
+    if not cfg.mixed_polarity:
+        ok &= G.polarity[g1] == G.polarity[g2]
     g1, g2 = g1[ok], g2[ok]
     if g1.size:
         ok = _region_limitation(S, G, g1, g2, tol) & _region_limitation(S, G, g2, g1, tol)
@@ -989,7 +1049,7 @@ def _initial_ellipses(
     h1 = np.concatenate([single, g1])
     h2 = np.concatenate([np.full(single.size, -1), g2])
     if h1.size == 0:
-        return np.zeros((0, 5)), np.zeros(0)
+        return np.zeros((0, 5)), np.zeros(0), np.zeros(0, dtype=bool)
     w1 = G.npix[h1]
     w2 = np.where(h2 >= 0, G.npix[np.maximum(h2, 0)], 0.0)
     ox = (w1 * G.cx[h1] + w2 * G.cx[np.maximum(h2, 0)]) / (w1 + w2)
@@ -1009,9 +1069,9 @@ def _initial_ellipses(
     valid &= _plausible(params, cfg, max_a)
     h1, h2, params, w = h1[valid], h2[valid], params[valid], (w1 + w2)[valid]
     if h1.size == 0:
-        return np.zeros((0, 5)), np.zeros(0)
+        return np.zeros((0, 5)), np.zeros(0), np.zeros(0, dtype=bool)
     good = _validate_hypotheses(S, G, h1, h2, params, cfg)
-    return params[good], w[good]
+    return params[good], w[good], (h2 < 0)[good]
 
 
 def _region_limitation(
@@ -1023,9 +1083,7 @@ def _region_limitation(
     ok = np.ones(ga.size, dtype=bool)
     pts = [S.start[G.first[gb]], S.samples[G.middle[gb], 1], S.end[G.last[gb]]]
     for seg in (G.first[ga], G.middle[ga], G.last[ga]):
-        # Inner normal: the gradient for bright-inside arcs, its opposite otherwise.
-        p = S.polarity[seg]
-        nx, ny = p * S.ty[seg], -p * S.tx[seg]  # gradient = tangent rotated by -90 deg
+        nx, ny = S.ty[seg], -S.tx[seg]  # inner normal: d rotated by -90 deg
         for q in pts:
             ok &= (q[:, 0] - S.cx[seg]) * nx + (q[:, 1] - S.cy[seg]) * ny >= -tol
     return ok
@@ -1166,8 +1224,8 @@ def _conic_to_params(
 
 
 def _cluster(
-    params: np.ndarray, weight: np.ndarray, cfg: EllipseDetectorConfig
-) -> tuple[np.ndarray, np.ndarray]:
+    params: np.ndarray, weight: np.ndarray, salient: np.ndarray, cfg: EllipseDetectorConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cluster initial ellipses by mode seeking (quick shift) in parameter space.
 
     Each ellipse is embedded as ``[cx, cy, a, b, (a - b) cos 2 theta, (a - b) sin 2 theta]``
@@ -1179,8 +1237,8 @@ def _cluster(
     itself and its neighbours (one mean-shift step).
 
     Returns:
-        (C, 5) cluster ellipses and (C,) cluster weights (summed over the members), by
-        decreasing weight.
+        (C, 5) cluster ellipses, (C,) cluster weights (summed over the members) and (C,)
+        whether a member came from a salient group, by decreasing weight.
     """
     K = params.shape[0]
     cx, cy, a, b, th = params.T
@@ -1207,6 +1265,7 @@ def _cluster(
         root = nxt
     modes = np.flatnonzero(root == np.arange(K))
     w_cluster = np.bincount(root, weight, minlength=K)[modes]
+    s_cluster = np.bincount(root, salient, minlength=K)[modes] > 0
     # One mean-shift step at every mode: weighted mean over the mode and its neighbours.
     is_mode = np.zeros(K, dtype=bool)
     is_mode[modes] = True
@@ -1222,7 +1281,7 @@ def _cluster(
     ang = (0.5 * np.arctan2(s2, c2)) % np.pi
     out = np.concatenate([mean, ang[:, None]], axis=1)
     order = np.argsort(-w_cluster, kind="stable")
-    return out[order], w_cluster[order]
+    return out[order], w_cluster[order], s_cluster[order]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1287,6 +1346,9 @@ _REFINE_POINTS = 300
 """At most about this many inliers (evenly strided along the gather order) enter the
 geometric refinement."""
 
+_ALWAYS_VERIFIED = 6
+"""The clusters with the largest weight per pixel of perimeter skip the screen's threshold."""
+
 _SCREEN_PER_CANDIDATE = 5
 """The screen looks at up to this many clusters per candidate it passes on."""
 
@@ -1295,13 +1357,21 @@ _ORIENTATION_CLASSES = 8
 
 
 def _screen(
-    cands: np.ndarray, weight: np.ndarray, index: _EdgeIndex, cfg: EllipseDetectorConfig
+    cands: np.ndarray,
+    weight: np.ndarray,
+    salient: np.ndarray,
+    index: _EdgeIndex,
+    cfg: EllipseDetectorConfig,
 ) -> np.ndarray:
     """Cheap first look at the clustered candidates; the `max_candidates` best go on to the
     exact verification.
 
-    At most `_SCREEN_PER_CANDIDATE` * `max_candidates` clusters are looked at, those with the
-    largest weight per pixel of perimeter first. Each is sampled every ~3 px along its
+    Clusters with a fit to a single salient group (a long smooth arc: strong evidence, but its
+    fit may be off by more than the screen's 2 px elsewhere, see `grow_fraction`) and the
+    `_ALWAYS_VERIFIED` clusters with the largest weight per pixel of perimeter go on whatever
+    their score, up to half of `max_candidates`. Of the others, at most
+    `_SCREEN_PER_CANDIDATE` * `max_candidates` are looked at, those with the largest weight
+    per pixel of perimeter first. Each is sampled every ~3 px along its
     perimeter; a sample is supported when an edge pixel whose gradient orientation is within
     one class (22.5 deg) of the ellipse normal's class lies within +-2 px (a 5x5 dilation of
     an orientation bit-mask image). The score is the supported fraction; candidates scoring
@@ -1312,10 +1382,13 @@ def _screen(
     # Look first at the clusters whose initial fits explain most of their perimeter: the
     # ring's cluster collects many pairs of long arcs, clutter pairs of short arcs.
     a, b = cands[:, 2], cands[:, 3]
-    perim = np.pi * (a + b)
-    cands = cands[
-        np.argsort(-weight / perim, kind="stable")[: _SCREEN_PER_CANDIDATE * cfg.max_candidates]
-    ]
+    order = np.argsort(-weight / (np.pi * (a + b)), kind="stable")
+    strong = np.zeros(cands.shape[0], dtype=bool)
+    strong[order[:_ALWAYS_VERIFIED]] = True
+    strong |= salient
+    first = np.concatenate([order[strong[order]], order[~strong[order]]])
+    n_strong = min(int(strong.sum()), max(cfg.max_candidates // 2, 1))
+    cands = cands[first[: n_strong + _SCREEN_PER_CANDIDATE * cfg.max_candidates]]
     K = cands.shape[0]
     H, W = index.shape
     nc = _ORIENTATION_CLASSES
@@ -1347,8 +1420,10 @@ def _screen(
     hit = np.zeros(kk.size, dtype=bool)
     hit[inside] = (dil[py[inside], px[inside]] & want[inside]) != 0
     score = np.bincount(kk, hit, minlength=K) / ns
-    good = np.flatnonzero(score >= 0.7 * cfg.min_support)
-    good = good[np.argsort(-score[good], kind="stable")[: cfg.max_candidates]]
+    rest = np.flatnonzero(score >= 0.7 * cfg.min_support)
+    rest = rest[rest >= n_strong]
+    rest = rest[np.argsort(-score[rest], kind="stable")]
+    good = np.concatenate([np.arange(n_strong), rest])[: cfg.max_candidates]
     return cands[good]
 
 
@@ -1356,9 +1431,26 @@ def _verify(
     cands: np.ndarray, index: _EdgeIndex, cfg: EllipseDetectorConfig, max_a: float
 ) -> list[_Found]:
     """Gather-and-fit passes, acceptance, duplicate suppression, refinement, final statistics."""
-    P = cands
-    # Pass 1 (loose): collect inliers, refit algebraically, keep promising candidates.
-    r = _gather(P, index, cfg.gather_tolerance_px, cfg)
+    P = cands.copy()
+    gtol = cfg.gather_tolerance_px
+    # Pass 1 (loose): collect inliers within `gather_tolerance_px`.
+    r = _gather(P, index, gtol, cfg)
+    # Growth: an initial ellipse fitted to one or two arcs can be several pixels off elsewhere
+    # on its perimeter (the arcs' own sub-pixel deviations are extrapolated), so a candidate
+    # that is short of support gathers within a tolerance proportional to its size, refits
+    # (one ICP step), and keeps the result if that raises its loose support. Only such
+    # candidates: on a good one the wide band would pull in parallel edges nearby.
+    tol0 = np.maximum(gtol, cfg.grow_fraction * P[:, 2])
+    grow = np.flatnonzero((r.support < cfg.min_support) & (tol0 > gtol))
+    if grow.size:
+        Pg = P[grow]
+        rg = _gather(Pg, index, tol0[grow], cfg)
+        Pg = _refit(Pg, rg, index, rg.support >= 0.5 * cfg.min_support, tol0[grow])
+        rg = _gather(Pg, index, gtol, cfg)
+        better = rg.support > r.support[grow] + 0.05
+        if better.any():
+            P[grow[better]] = Pg[better]
+            r = _gather(P, index, gtol, cfg)
     keep = r.support >= 0.7 * cfg.min_support
     P = _refit(P, r, index, keep, cfg.gather_tolerance_px)
     keep &= _plausible(P, cfg, max_a)
@@ -1483,7 +1575,9 @@ def _suppress_duplicates(
     return _select(P, r, keep)
 
 
-def _refit(P: np.ndarray, r: _Pass, index: _EdgeIndex, keep: np.ndarray, tol: float) -> np.ndarray:
+def _refit(
+    P: np.ndarray, r: _Pass, index: _EdgeIndex, keep: np.ndarray, tol: float | np.ndarray
+) -> np.ndarray:
     """Algebraic refit of every kept candidate to its inliers (batched over moment sums);
     a refit that jumps away from the candidate is ignored."""
     K = P.shape[0]
@@ -1503,19 +1597,23 @@ def _refit(P: np.ndarray, r: _Pass, index: _EdgeIndex, keep: np.ndarray, tol: fl
     new[:, 0] = new[:, 0] * s[idx] + P[idx, 0]
     new[:, 1] = new[:, 1] * s[idx] + P[idx, 1]
     new[:, 2:4] *= s[idx, None]
+    tolk = np.broadcast_to(np.asarray(tol, dtype=float), (K,))
     for n, kk in enumerate(idx):
-        if ok[n] and _close(new[n], P[kk], 2 * tol):
+        if ok[n] and _close(new[n], P[kk], 2 * float(tolk[kk])):
             P[kk] = new[n]
     return P
 
 
-def _gather(P: np.ndarray, index: _EdgeIndex, tol: float, cfg: EllipseDetectorConfig) -> _Pass:
+def _gather(
+    P: np.ndarray, index: _EdgeIndex, tol: float | np.ndarray, cfg: EllipseDetectorConfig
+) -> _Pass:
     """Edge support of K candidate ellipses, all at once.
 
-    Edge pixels in the 8x8 cells crossed by a band of +-(tol + 1) px around each ellipse are
-    tested for distance (<= tol) and gradient direction (within `normal_tolerance_deg` of the
-    normal, either sign). Inliers are binned along the perimeter (bins of ~`support_bin_px`
-    of arc length); runs of supported bins shorter than `min_run_px` are discarded.
+    Edge pixels in the 4x4 cells crossed by a band of +-(tol + 0.5) px around each ellipse are
+    tested for distance (<= tol, a scalar or one per candidate) and gradient direction
+    (within `normal_tolerance_deg` of the normal, either sign). Inliers are binned along the
+    perimeter (bins of ~`support_bin_px` of arc length); runs of supported bins shorter than
+    `min_run_px` are discarded.
     """
     K = P.shape[0]
     if K == 0:
@@ -1536,12 +1634,15 @@ def _gather(P: np.ndarray, index: _EdgeIndex, tol: float, cfg: EllipseDetectorCo
     nx, ny = b[kk] * np.cos(t), a[kk] * np.sin(t)
     nn = _norm(nx, ny)
     nx, ny = (c[kk] * nx - s[kk] * ny) / nn, (s[kk] * nx + c[kk] * ny) / nn
-    off = tol + 0.5
+    tolk = np.broadcast_to(np.asarray(tol, dtype=float), (K,))
+    # Offsets across the band at <= 3 px steps, so that no 4x4 cell in it is skipped.
+    nstep = math.ceil(float(tolk.max() + 0.5) / 3.0)
+    off = (tolk[kk] + 0.5) / nstep
     ncell = index.ncx * index.ncy
     cells = []
-    for o in (-off, 0.0, off):
-        cx = np.floor(px + o * nx + 0.5).astype(np.int64) >> _CELL_SHIFT
-        cy = np.floor(py + o * ny + 0.5).astype(np.int64) >> _CELL_SHIFT
+    for o in range(-nstep, nstep + 1):
+        cx = np.floor(px + o * off * nx + 0.5).astype(np.int64) >> _CELL_SHIFT
+        cy = np.floor(py + o * off * ny + 0.5).astype(np.int64) >> _CELL_SHIFT
         inside = (cx >= 0) & (cx < index.ncx) & (cy >= 0) & (cy < index.ncy)
         cells.append((kk * ncell + cy * index.ncx + cx)[inside])
     key = _sorted_unique(np.concatenate(cells))
@@ -1564,7 +1665,9 @@ def _gather(P: np.ndarray, index: _EdgeIndex, tol: float, cfg: EllipseDetectorCo
     gu = cc_ * index.gx[pix] + ss_ * index.gy[pix]
     gv = cc_ * index.gy[pix] - ss_ * index.gx[pix]
     cosn = (gu * nu + gv * nv) / gn
-    inl = (np.abs(d) <= tol) & (np.abs(cosn) >= math.cos(math.radians(cfg.normal_tolerance_deg)))
+    inl = (np.abs(d) <= tolk[cand]) & (
+        np.abs(cosn) >= math.cos(math.radians(cfg.normal_tolerance_deg))
+    )
     cand, pix, inward = cand[inl], pix[inl], cosn[inl] < 0
     tt = np.arctan2(v[inl] / b[cand], u[inl] / a[cand])
     # Perimeter position: eccentric anomaly -> arc-length fraction via a 64-step table.
