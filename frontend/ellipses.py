@@ -641,9 +641,10 @@ def _arc_segments(E: _Edges, cfg: EllipseDetectorConfig) -> _Segments:
     sv2 = np.bincount(s, v * v, minlength=m)
     rms = np.sqrt(np.maximum(sv2 - np.einsum("ij,ij->i", coef, rhs), 0.0) / cntf)
     turn = coef[:, 2] * length
-    # Arc-support: bent by more than noise, no more than a piece can span, smooth (a corner
-    # or a wiggle leaves residuals), and the gradient does not turn against the bend.
     pol_geo = np.where(turn > 0, 1.0, -1.0)
+    # Arc-support: bent by more than noise, no more than a piece can span, smooth (a corner
+    # or a wiggle leaves residuals), the gradient turns neither against the bend nor by more
+    # than a piece, and the chord is not much shorter than the pixel count.
     arc = (
         ok_fit
         & (np.abs(turn) >= math.radians(cfg.min_arc_turn_deg))
@@ -1346,6 +1347,14 @@ _REFINE_POINTS = 300
 """At most about this many inliers (evenly strided along the gather order) enter the
 geometric refinement."""
 
+_GROW_MIN_SUPPORT = 0.2
+"""Growth is tried on candidates whose loose support is at least this (something to grow
+from) and below `min_support` ..."""
+_GROW_MAX_PX = 8.0
+"""... with a band of at most +-this [px] ..."""
+_GROW_MAX_CANDIDATES = 8
+"""... on at most this many candidates (the best supported)."""
+
 _ALWAYS_VERIFIED = 6
 """The clusters with the largest weight per pixel of perimeter skip the screen's threshold."""
 
@@ -1437,11 +1446,14 @@ def _verify(
     r = _gather(P, index, gtol, cfg)
     # Growth: an initial ellipse fitted to one or two arcs can be several pixels off elsewhere
     # on its perimeter (the arcs' own sub-pixel deviations are extrapolated), so a candidate
-    # that is short of support gathers within a tolerance proportional to its size, refits
-    # (one ICP step), and keeps the result if that raises its loose support. Only such
+    # short of support gathers within a tolerance proportional to its size, refits (one ICP
+    # step), and keeps the result only if that raises its loose support. Only such
     # candidates: on a good one the wide band would pull in parallel edges nearby.
-    tol0 = np.maximum(gtol, cfg.grow_fraction * P[:, 2])
-    grow = np.flatnonzero((r.support < cfg.min_support) & (tol0 > gtol))
+    tol0 = np.clip(cfg.grow_fraction * P[:, 2], gtol, _GROW_MAX_PX)
+    grow = np.flatnonzero(
+        (r.support < cfg.min_support) & (r.support >= _GROW_MIN_SUPPORT) & (tol0 > gtol)
+    )
+    grow = grow[np.argsort(-r.support[grow], kind="stable")[:_GROW_MAX_CANDIDATES]]
     if grow.size:
         Pg = P[grow]
         rg = _gather(Pg, index, tol0[grow], cfg)
@@ -1450,7 +1462,7 @@ def _verify(
         better = rg.support > r.support[grow] + 0.05
         if better.any():
             P[grow[better]] = Pg[better]
-            r = _gather(P, index, gtol, cfg)
+            r = _splice(r, grow[better], _select(Pg, rg, better)[1])
     keep = r.support >= 0.7 * cfg.min_support
     P = _refit(P, r, index, keep, cfg.gather_tolerance_px)
     keep &= _plausible(P, cfg, max_a)
@@ -1514,6 +1526,26 @@ def _verify(
             )
         )
     return found
+
+
+def _splice(r: _Pass, rows: np.ndarray, sub: _Pass) -> _Pass:
+    """``r`` with the candidates ``rows`` replaced by the (equally many) candidates of
+    ``sub``, in order."""
+    drop = np.zeros(r.support.size, dtype=bool)
+    drop[rows] = True
+    m = ~drop[r.cand]
+    support, coverage = r.support.copy(), r.coverage.copy()
+    plus, minus = r.plus.copy(), r.minus.copy()
+    support[rows], coverage[rows] = sub.support, sub.coverage
+    plus[rows], minus[rows] = sub.plus, sub.minus
+    return _Pass(
+        support=support,
+        coverage=coverage,
+        plus=plus,
+        minus=minus,
+        cand=np.concatenate([r.cand[m], rows[sub.cand]]),
+        pix=np.concatenate([r.pix[m], sub.pix]),
+    )
 
 
 def _close(p: np.ndarray, q: np.ndarray, tol: float) -> bool:
