@@ -116,9 +116,11 @@ class EllipseDetectorConfig:
             limitation test.
         pair_min_fraction: fraction of a group's pixels (by segment) that must support an
             initial ellipse fitted to it.
-        min_semi_minor_px: smallest semi-minor axis reported [px].
+        min_semi_minor_px: smallest semi-minor axis reported [px]. On the rendered sequences
+            every detection below 8 px was a round foil speckle (docs/ellipse_detector.md).
         max_semi_major_px: largest semi-major axis [px]; None means the larger image side.
-        min_axis_ratio: smallest b / a accepted (a circle seen at 78 deg incidence).
+        min_axis_ratio: smallest b / a accepted (a circle seen at 73 deg incidence); false
+            detections on foil are elongated (median b / a 0.47), the ring is > 0.6.
         cluster_center_px, cluster_axis_px: initial ellipses closer than these (centre
             distance, each semi-axis) [px] ...
         cluster_rel: ... plus this fraction of the semi-minor axis, are merged.
@@ -137,7 +139,7 @@ class EllipseDetectorConfig:
         min_run_px: supported perimeter runs shorter than this [px] are discarded (stray
             inliers of clutter crossing the ellipse at a shallow angle).
         min_support: smallest supported fraction of the perimeter accepted. A 180 deg arc has
-            0.5; the ring's outer front edge typically 0.6-0.95.
+            0.5; the ring's outer front edge typically 0.6-0.95, false detections ~0.5.
         min_coverage: smallest fraction of angular sectors with support.
         coverage_sectors: number of sectors of equal perimeter length for the coverage.
         mixed_polarity_fraction: the polarity is reported as 0 (mixed) when the minority
@@ -168,9 +170,9 @@ class EllipseDetectorConfig:
     max_pair_groups: int = 200
     pair_tolerance_px: float = 3.0
     pair_min_fraction: float = 0.8
-    min_semi_minor_px: float = 4.0
+    min_semi_minor_px: float = 8.0
     max_semi_major_px: float | None = None
-    min_axis_ratio: float = 0.2
+    min_axis_ratio: float = 0.3
     cluster_center_px: float = 2.0
     cluster_axis_px: float = 2.0
     cluster_rel: float = 0.02
@@ -182,7 +184,7 @@ class EllipseDetectorConfig:
     inlier_tolerance_px: float = 1.0
     support_bin_px: float = 2.0
     min_run_px: float = 6.0
-    min_support: float = 0.4
+    min_support: float = 0.45
     min_coverage: float = 0.45
     coverage_sectors: int = 36
     mixed_polarity_fraction: float = 0.2
