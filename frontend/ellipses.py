@@ -1169,7 +1169,6 @@ def _fit_moments(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Returns:
         (K, 5) ``[cx, cy, a, b, theta]`` (NaN where invalid) and a (K,) validity mask.
     """
-    K = M.shape[0]
     S = M[:, _S_INDEX]
     S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
     det3 = np.linalg.det(S3)
@@ -1184,18 +1183,65 @@ def _fit_moments(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ok = np.all(np.isfinite(Mp), axis=(1, 2))
     valid &= ok
     Mp = np.where(ok[:, None, None], Mp, np.eye(3))
-    w, V = np.linalg.eig(Mp)
-    V = V.real
-    cond = 4 * V[:, 0, :] * V[:, 2, :] - V[:, 1, :] ** 2
-    score = np.where(cond > 0, np.abs(w.real), np.inf)
-    pick = np.argmin(score, axis=1)
-    valid &= np.isfinite(score[np.arange(K), pick])
-    a1 = V[np.arange(K), :, pick]
+    a1, found = _positive_eigenvector(Mp)
+    # Fall back to a general eigen-solver where the closed form failed (near-repeated roots).
+    bad = np.flatnonzero(~found & valid)
+    if bad.size:
+        w, V = np.linalg.eig(Mp[bad])
+        V = V.real
+        cond = 4 * V[:, 0, :] * V[:, 2, :] - V[:, 1, :] ** 2
+        score = np.where(cond > 0, np.abs(w.real), np.inf)
+        pick = np.argmin(score, axis=1)
+        a1[bad] = V[np.arange(bad.size), :, pick]
+        found[bad] = np.isfinite(score[np.arange(bad.size), pick])
+    valid &= found
     a2 = np.einsum("kij,kj->ki", T, a1)
     params, ok = _conic_to_params(a1[:, 0], a1[:, 1], a1[:, 2], a2[:, 0], a2[:, 1], a2[:, 2])
     valid &= ok
     params[~valid] = np.nan
     return params, valid
+
+
+def _positive_eigenvector(Mp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvector of the largest eigenvalue of each reduced Fitzgibbon matrix (K, 3, 3), in
+    closed form.
+
+    ``Mp = C1^-1 (S1 + S2 T)`` is similar to a symmetric matrix (the Schur complement of the
+    scatter matrix is positive definite), so its eigenvalues are real; the ellipse
+    (4 A C - B^2 > 0) belongs to the only positive one, the largest. The roots of the
+    characteristic cubic come from the trigonometric formula, the eigenvector from the
+    cross product of two rows of ``Mp - lambda I``. Returns (K, 3) vectors and a (K,) mask of
+    those that are finite and satisfy the ellipse condition.
+    """
+    tr = Mp[:, 0, 0] + Mp[:, 1, 1] + Mp[:, 2, 2]
+    minors = (
+        Mp[:, 0, 0] * Mp[:, 1, 1]
+        - Mp[:, 0, 1] * Mp[:, 1, 0]
+        + Mp[:, 0, 0] * Mp[:, 2, 2]
+        - Mp[:, 0, 2] * Mp[:, 2, 0]
+        + Mp[:, 1, 1] * Mp[:, 2, 2]
+        - Mp[:, 1, 2] * Mp[:, 2, 1]
+    )
+    det = np.linalg.det(Mp)
+    # lambda = x + tr / 3 turns lambda^3 - tr lambda^2 + minors lambda - det into
+    # x^3 + p x + q.
+    p = minors - tr * tr / 3.0
+    q = -2.0 * tr**3 / 27.0 + tr * minors / 3.0 - det
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m = 2.0 * np.sqrt(np.maximum(-p / 3.0, 0.0))
+        arg = np.clip(3.0 * q / (p * m), -1.0, 1.0)
+        lam = tr / 3.0 + m * np.cos(np.arccos(arg) / 3.0)
+    R = Mp - lam[:, None, None] * np.eye(3)
+    cands = np.stack(
+        [np.cross(R[:, 0], R[:, 1]), np.cross(R[:, 0], R[:, 2]), np.cross(R[:, 1], R[:, 2])],
+        axis=1,
+    )
+    norms = np.linalg.norm(cands, axis=2)
+    v = cands[np.arange(Mp.shape[0]), np.argmax(norms, axis=1)]
+    v = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+    ok = np.all(np.isfinite(v), axis=1) & (4 * v[:, 0] * v[:, 2] - v[:, 1] ** 2 > 0)
+    ok &= norms.max(axis=1) > 1e-12 * np.maximum(np.abs(Mp).max(axis=(1, 2)) ** 2, 1e-300)
+    return np.where(ok[:, None], v, 0.0), ok
 
 
 def _conic_to_params(
@@ -1349,7 +1395,7 @@ _DETECTOR_VARIANCE_PX2 = 0.5
 """Smoothing variance of the edge detector besides the Gaussian pre-blur [px^2] (see
 `_unbend`)."""
 
-_REFINE_POINTS = 300
+_REFINE_POINTS = 200
 """At most about this many inliers (evenly strided along the gather order) enter the
 geometric refinement."""
 
@@ -1363,6 +1409,10 @@ _GROW_MAX_CANDIDATES = 8
 
 _ALWAYS_VERIFIED = 6
 """The clusters with the largest weight per pixel of perimeter skip the screen's threshold."""
+
+_VERIFY_PERIMETER_BUDGET = 6.0
+"""Candidates are verified in screen order until their summed perimeter reaches this many
+times (image width + height)."""
 
 _SCREEN_PER_CANDIDATE = 5
 """The screen looks at up to this many clusters per candidate it passes on."""
@@ -1390,7 +1440,8 @@ def _screen(
     perimeter; a sample is supported when an edge pixel whose gradient orientation is within
     one class (22.5 deg) of the ellipse normal's class lies within +-2 px (a 5x5 dilation of
     an orientation bit-mask image). The score is the supported fraction; candidates scoring
-    below 0.7 `min_support` are dropped.
+    below 0.7 `min_support` are dropped, and the list is cut at a perimeter budget
+    (`_VERIFY_PERIMETER_BUDGET`).
     """
     if cands.shape[0] == 0:
         return cands
@@ -1439,6 +1490,11 @@ def _screen(
     rest = rest[rest >= n_strong]
     rest = rest[np.argsort(-score[rest], kind="stable")]
     good = np.concatenate([np.arange(n_strong), rest])[: cfg.max_candidates]
+    # Verification costs in proportion to the perimeter: stop at a budget of a few times the
+    # image's size (room for six ring-sized ellipses), keeping at least the first candidate.
+    perim = np.pi * (cands[good, 2] + cands[good, 3])
+    budget = _VERIFY_PERIMETER_BUDGET * (H + W)
+    good = good[: max(1, int(np.searchsorted(np.cumsum(perim), budget, side="right")))]
     return cands[good]
 
 
