@@ -1454,9 +1454,15 @@ def _screen(
     strong |= salient
     first = np.concatenate([order[strong[order]], order[~strong[order]]])
     n_strong = min(int(strong.sum()), max(cfg.max_candidates // 2, 1))
-    cands = cands[first[: n_strong + _SCREEN_PER_CANDIDATE * cfg.max_candidates]]
-    K = cands.shape[0]
+    first = first[: n_strong + _SCREEN_PER_CANDIDATE * cfg.max_candidates]
     H, W = index.shape
+    # The screen's cost is also proportional to the perimeter: a budget of
+    # `_SCREEN_PER_CANDIDATE` times the verification's.
+    perim = np.pi * (a[first] + b[first])
+    budget = _SCREEN_PER_CANDIDATE * _VERIFY_PERIMETER_BUDGET * (H + W)
+    first = first[: max(n_strong, int(np.searchsorted(np.cumsum(perim), budget, side="right")))]
+    cands = cands[first]
+    K = cands.shape[0]
     nc = _ORIENTATION_CLASSES
     cls = (np.floor((np.arctan2(index.gy, index.gx) % np.pi) / (np.pi / nc)).astype(np.int64)) % nc
     mask = np.zeros((H + 4, W + 4), dtype=np.uint8)
@@ -1474,17 +1480,19 @@ def _screen(
     ns = np.maximum(np.ceil(np.pi * (a + b) / 3.0).astype(np.int64), 8)
     kk = np.repeat(np.arange(K), ns)
     t = (np.arange(kk.size) - np.repeat(np.cumsum(ns) - ns, ns)) * (2 * np.pi / ns[kk])
-    c, s = np.cos(cands[kk, 4]), np.sin(cands[kk, 4])
+    ck, sk = np.cos(cands[:, 4]), np.sin(cands[:, 4])
+    c, s = ck[kk], sk[kk]
     ex, ey = a[kk] * np.cos(t), b[kk] * np.sin(t)
     px = np.rint(cands[kk, 0] + c * ex - s * ey).astype(np.int64) + 2
     py = np.rint(cands[kk, 1] + s * ex + c * ey).astype(np.int64) + 2
-    nx, ny = b[kk] * np.cos(t), a[kk] * np.sin(t)
-    phi = (np.arctan2(s * nx + c * ny, c * nx - s * ny) % np.pi) / (np.pi / nc)
+    # Normal direction mod pi: theta + atan2(a sin t, b cos t) = theta + atan2(a^2 ey, b^2 ex).
+    phi = ((cands[kk, 4] + np.arctan2(a[kk] ** 2 * ey, b[kk] ** 2 * ex)) % np.pi) / (np.pi / nc)
     k0 = np.floor(phi).astype(np.int64) % nc
     want = (1 << k0) | (1 << ((k0 + 1) % nc)) | (1 << ((k0 - 1) % nc))
     inside = (px >= 0) & (px < W + 4) & (py >= 0) & (py < H + 4)
     hit = np.zeros(kk.size, dtype=bool)
-    hit[inside] = (dil[py[inside], px[inside]] & want[inside]) != 0
+    flat = py[inside] * (W + 4) + px[inside]
+    hit[inside] = (np.take(dil.ravel(), flat) & want[inside]) != 0
     score = np.bincount(kk, hit, minlength=K) / ns
     rest = np.flatnonzero(score >= 0.7 * cfg.min_support)
     rest = rest[rest >= n_strong]
