@@ -5,35 +5,44 @@ Efficient High-Quality Ellipse Detection", IEEE Trans. Image Processing 29 (2019
 numpy/scipy/OpenCV primitives so that a full 1024x768 image takes tens of milliseconds on one
 core. docs/ellipse_detector.md explains every stage, its parameters and the measured results.
 
-1. **Edges.** Gaussian blur, Sobel gradient, Canny (OpenCV). Every edge pixel gets its unit
-   gradient (pointing from dark to bright) and a sub-pixel position on the edge (Devernay's
-   parabola through the gradient magnitude along the dominant gradient axis).
-2. **Arc-support line segments.** Edge pixels whose gradient directions differ by less than
-   `chain_angle_deg` are linked into chains (8-neighbours, connected components); each chain is
-   cut into pieces whose gradient direction spans at most `segment_turn_deg` (the LSD
-   line-support region, on thin Canny edges). A piece is an *arc-support* segment when the
-   mean gradient directions of its two halves turn in one sense by at least
-   `min_arc_turn_deg`; the sense of turning gives its polarity (the paper's "same/opposite
-   polarity": is the bright side the inside of the arc?). Straight pieces are dropped.
-3. **Grouping.** The end of one segment is linked to the start of another of the same
-   polarity if they are close (`link_gap_px`) and the direction turns the right way by at most
-   `link_max_turn_deg` (convexity); mutually best links form ordered chains ("groups").
+1. **Edges.** Gaussian blur, Sobel gradient, Canny (OpenCV, all int16). Every edge pixel
+   gets its unit gradient (pointing from dark to bright) and a sub-pixel position on the edge
+   (Devernay's parabola through the gradient magnitude along the dominant gradient axis).
+2. **Arc-support line segments.** 8-neighbour edge pixels whose gradient directions differ by
+   less than `chain_angle_deg` are linked (m-adjacency; junction pixels are cut out) into
+   simple chains, which are ordered by a breadth-first search from one end. Along each chain
+   the smoothed, unwrapped gradient direction is cut every `segment_turn_deg` (the
+   angle tolerance of LSD's line-support regions), with hysteresis against noise. A piece is
+   an *arc-support* segment when it bends consistently: the curvature of a quadratic fit to its
+   sub-pixel points (its sign relative to the gradient gives the paper's polarity: is the bright
+   side the inside of the arc?), a small fit residual, and a gradient turning the same way.
+   Straight pieces and corners are dropped.
+3. **Grouping.** The end of one segment is linked to the start of another (of the same
+   polarity unless `mixed_polarity`) if they are close (`link_gap_px`) and the direction turns
+   the convex way, by at most `link_max_turn_deg` and by no more than the two segments'
+   own curvature explains (`link_turn_ratio`); mutually best links form ordered groups.
 4. **Initial ellipses.** A direct least-squares fit (Fitzgibbon/Halir-Flusser, batched over
-   moment sums) to every group that turns by at least `salient_coverage_deg`, and to every
-   pair of groups of one polarity that lie on the inner side of each other's tangents (the
-   paper's "region limitation"). A fit is kept when the sample points of its segments lie
-   within `pair_tolerance_px` of it with gradients along its normal.
-5. **Clustering.** Near-duplicate initial ellipses are merged greedily in parameter space,
-   strongest first (weighted means of the members: one mean-shift step).
-6. **Verification.** Edge pixels within a distance tolerance of a candidate whose gradient lies
+   moment sums, closed-form eigenvector) to every group that turns by at least
+   `salient_coverage_deg`, and to every pair of groups that lie on the inner side of each
+   other's tangents (the paper's "region limitation") and close enough for their curvature.
+   A fit is kept when its segments' sample points lie within `pair_tolerance_px` of it with
+   gradients along its normal.
+5. **Clustering.** Mode seeking (quick shift, then one mean-shift step) in a parameter space
+   where every coordinate is a boundary displacement in pixels.
+6. **Screen.** A cheap look-up of every strong cluster's perimeter in a dilated
+   orientation bit-mask of the edges ranks them; at most `max_candidates`, within a
+   perimeter budget, go on.
+7. **Verification.** Edge pixels within a distance tolerance of a candidate whose gradient lies
    within `normal_tolerance_deg` of the ellipse normal (either sign) support it. The perimeter
    is cut into bins of `support_bin_px`; runs of supported bins shorter than `min_run_px` are
    discarded (the paper's connectivity analysis). Support = supported fraction of the
-   perimeter; coverage = fraction of `coverage_sectors` angular sectors supported. Fit, gather
-   again with the tighter `inlier_tolerance_px`, keep candidates with enough support and
-   coverage, suppress duplicates.
-7. **Refinement.** Geometric (orthogonal-distance) least squares on the sub-pixel inliers
-   (`satpose.frontend.conics.refine_ellipse`), then the final support statistics.
+   perimeter; coverage = fraction of `coverage_sectors` sectors supported. Candidates short of
+   support first try to grow (gather within `grow_fraction` of their size and refit); then
+   gather within `gather_tolerance_px`, refit, gather within `inlier_tolerance_px`, accept
+   with enough support and coverage, suppress duplicates.
+8. **Refinement.** The inliers are moved back by the smoothing's curvature bias and fitted by
+   geometric (orthogonal-distance) least squares (`satpose.frontend.conics.refine_ellipse`);
+   then the final support statistics.
 
 Conventions: images are undistorted; pixel (0, 0) is the centre of the top-left pixel
 (OpenCV); ellipses are `satpose.frontend.conics.Ellipse` ``(cx, cy, a, b, theta)`` in pixels.
@@ -99,7 +108,8 @@ class EllipseDetectorConfig:
         max_arc_rms_px: largest RMS residual of a segment's pixels from a quadratic curve
             [px]; rim arcs have 0.05-0.2 px, pieces spanning a foil corner 0.5 px and more.
         link_gap_px: largest gap between the end of a segment and the start of the next one in
-            a group [px] (Lu et al. search a 4x4 window beyond the end point).
+            a group [px] (Lu et al. search a 4x4 window beyond the end point; junctions with
+            foil edges cut a few pixels out of the rim's chains).
         link_max_turn_deg: largest turn of direction between consecutive segments of a group
             [deg] (3 pi / 8 in Lu et al.); a turn against the group's sense of curvature is
             allowed up to `min_arc_turn_deg` (noise).
@@ -121,19 +131,20 @@ class EllipseDetectorConfig:
         max_semi_major_px: largest semi-major axis [px]; None means the larger image side.
         min_axis_ratio: smallest b / a accepted (a circle seen at 73 deg incidence); false
             detections on foil are elongated (median b / a 0.47), the ring is > 0.6.
-        cluster_center_px, cluster_axis_px: initial ellipses closer than these (centre
-            distance, each semi-axis) [px] ...
-        cluster_rel: ... plus this fraction of the semi-minor axis, are merged.
-        cluster_angle_deg: ... and whose orientations differ by less than this [deg] (ignored
-            when both are nearly circular, b / a > 0.95).
-        max_candidates: at most this many clustered candidates (strongest first) are verified.
+        cluster_center_px: initial ellipses closer than this [px] ...
+        cluster_rel: ... plus this fraction of the smaller semi-minor axis are neighbours in
+            the clustering, in a space where each coordinate moves the boundary by a pixel:
+            ``[cx, cy, a, b, (a - b) cos 2 theta, (a - b) sin 2 theta]``.
+        max_candidates: at most this many clusters are verified exactly (the strongest and
+            salient ones, then by screen score, within a perimeter budget).
         normal_tolerance_deg: an edge pixel supports an ellipse when its gradient is within
             this angle [deg] of the ellipse normal, either sign (22.5 deg in Lu et al.).
-        grow_fraction: the first verification pass gathers edge pixels within this fraction of
-            the semi-major axis (at least `gather_tolerance_px`) and refits: an initial ellipse
-            from a 110 deg arc of the ring can be 5-10 px off on the far side.
-        gather_tolerance_px: distance tolerance of the second verification pass [px].
-        inlier_tolerance_px: distance tolerance of the final passes [px].
+        grow_fraction: a candidate short of support gathers edge pixels within this fraction of
+            its semi-major axis (at least `gather_tolerance_px`, at most 8 px) and refits; the
+            result is kept if it is better supported: an initial ellipse from a 110 deg arc of
+            the ring can be 5-10 px off on the far side.
+        gather_tolerance_px: distance tolerance of the first (loose) verification pass [px].
+        inlier_tolerance_px: distance tolerance of the acceptance and final passes [px].
         support_bin_px: perimeter bin length for the support fraction [px]; 2 px so that the
             8-connected pixels of a continuous edge (spacing up to sqrt 2) fill every bin.
         min_run_px: supported perimeter runs shorter than this [px] are discarded (stray
@@ -174,9 +185,7 @@ class EllipseDetectorConfig:
     max_semi_major_px: float | None = None
     min_axis_ratio: float = 0.3
     cluster_center_px: float = 2.0
-    cluster_axis_px: float = 2.0
     cluster_rel: float = 0.02
-    cluster_angle_deg: float = 10.0
     max_candidates: int = 24
     normal_tolerance_deg: float = 22.5
     grow_fraction: float = 0.06
@@ -191,7 +200,7 @@ class EllipseDetectorConfig:
     duplicate_center_px: float = 1.5
     duplicate_axis_px: float = 1.5
     max_shared_inliers: float = 0.5
-    refine_iterations: int = 3
+    refine_iterations: int = 2
 
     def __post_init__(self) -> None:
         positive = {
@@ -221,9 +230,7 @@ class EllipseDetectorConfig:
             "min_arc_turn_deg": self.min_arc_turn_deg,
             "salient_coverage_deg": self.salient_coverage_deg,
             "cluster_center_px": self.cluster_center_px,
-            "cluster_axis_px": self.cluster_axis_px,
             "cluster_rel": self.cluster_rel,
-            "cluster_angle_deg": self.cluster_angle_deg,
             "min_run_px": self.min_run_px,
             "grow_fraction": self.grow_fraction,
             "duplicate_center_px": self.duplicate_center_px,
@@ -1552,8 +1559,11 @@ def _verify(
         for k in range(P.shape[0]):
             sel = r.pix[r.cand == k]
             # An evenly strided subset bounds the cost on large ellipses; a few hundred points
-            # pin the five parameters far below the edge noise.
-            sel = sel[:: max(1, sel.size // _REFINE_POINTS)]
+            # pin the five parameters far below the edge noise. Sorted by position first, so
+            # that the subset does not depend on the gather order (nor on a ROI).
+            if sel.size > _REFINE_POINTS:
+                sel = sel[np.lexsort((index.x[sel], index.y[sel]))]
+                sel = sel[:: sel.size // _REFINE_POINTS]
             pts = np.stack([index.x[sel], index.y[sel]], axis=1)
             pts = _unbend(pts, P[k], cfg.blur_sigma_px)
             try:
