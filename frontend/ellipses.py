@@ -528,7 +528,7 @@ class _Segments:
     tx: np.ndarray  # unit direction d: along it the arc turns clockwise (image coordinates)
     ty: np.ndarray
     length: np.ndarray  # extent along d [px]
-    turn: np.ndarray  # turn between the two halves [rad], > 0
+    turn: np.ndarray  # half the turn across the segment [rad], > 0 (curvature x length / 2)
     polarity: np.ndarray  # +1 brighter on the inner (concave) side, -1 darker
     start: np.ndarray  # (M, 2) first pixel along d
     end: np.ndarray  # (M, 2) last pixel
@@ -912,7 +912,8 @@ class _Groups:
 
 
 def _group_segments(S: _Segments, cfg: EllipseDetectorConfig) -> _Groups:
-    """Link segments end-to-start into chains of one polarity that turn one way."""
+    """Link segments end-to-start into ordered groups that turn one way (and have one
+    polarity, unless `mixed_polarity`)."""
     m = S.m
     alpha = np.arctan2(S.ty, S.tx)
     succ = np.full(m, -1, dtype=np.intp)

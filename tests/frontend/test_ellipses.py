@@ -137,6 +137,22 @@ def test_noise_free_ellipse_is_exact(
     assert r.max() <= EllipseDetectorConfig().inlier_tolerance_px + 0.05
 
 
+@pytest.mark.parametrize(
+    "config",
+    [EllipseDetectorConfig(mixed_polarity=True), EllipseDetectorConfig(refine_iterations=0)],
+    ids=["mixed-polarity", "algebraic-fit"],
+)
+def test_options_keep_noise_free_accuracy(config: EllipseDetectorConfig) -> None:
+    for a, b, theta in CASES:
+        H, W = int(2 * a + 40), int(2 * a + 60)
+        truth = Ellipse(cx=W / 2 + 0.37, cy=H / 2 - 0.21, a=a, b=b, theta=theta)
+        found = detect_ellipses(to_u8(draw((H, W), [(truth, 190.0)])), config)
+        dc, dax, _ = errors(nearest(found, truth), truth)
+        # Same bar as the default: linking arcs of either polarity changes nothing on a clean
+        # ellipse; the algebraic fit (no curvature correction) stays within it too.
+        assert dc < 0.1 and dax < 0.15, (a, b, dc, dax)
+
+
 # ---------------------------------------------------------------------------------------------
 # Noisy accuracy (statistical)
 # ---------------------------------------------------------------------------------------------
