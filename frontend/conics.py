@@ -212,8 +212,8 @@ def _orthogonal_residuals(p: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.
     dx, dy = p[:, 0] - cx, p[:, 1] - cy
     u = c * dx + s * dy  # point in the ellipse frame
     v = -s * dx + c * dy
-    t = np.arctan2(a * v, b * u)  # initial foot parameter
-    for _ in range(8):  # Newton on d/dt |q - e(t)|^2 = 0
+    t = np.arctan2(a * v, b * u)  # initial foot parameter (exact for a circle)
+    for _ in range(5):  # Newton on d/dt |q - e(t)|^2 = 0 (quadratic: 5 steps reach 1e-12)
         ct, st = np.cos(t), np.sin(t)
         ex, ey = a * ct, b * st
         f = (a * a - b * b) * st * ct - u * a * st + v * b * ct

@@ -262,9 +262,14 @@ def circle_from_stereo_conics(
 
 def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors completing the unit ``n`` to a right-handed orthonormal basis."""
-    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-    u /= np.linalg.norm(u)
-    return u, np.cross(n, u)
+    x, y, z = float(n[0]), float(n[1]), float(n[2])
+    if abs(x) < 0.9:  # u = n x e_x
+        u = np.array([0.0, z, -y])
+    else:  # u = n x e_y
+        u = np.array([-z, 0.0, x])
+    u /= math.sqrt(float(u @ u))
+    v = np.array([y * u[2] - z * u[1], z * u[0] - x * u[2], x * u[1] - y * u[0]])
+    return u, v
 
 
 def _circle_conic(
@@ -277,6 +282,21 @@ def _circle_conic(
     Hinv = np.linalg.inv(H)
     C = Hinv.T @ np.diag([1.0, 1.0, -1.0]) @ Hinv
     return C / np.linalg.norm(C)
+
+
+def _sampson_and_jacobian(p: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sampson distances (N,) of homogeneous points p (N, 3) to conic C and their derivatives
+    with respect to the 9 entries of C, (N, 9) (row-major)."""
+    q = p @ C  # C symmetric: (Cp)^T = p^T C
+    s = np.einsum("ij,ij->i", q, p)
+    g = 2.0 * np.sqrt(q[:, 0] ** 2 + q[:, 1] ** 2)
+    g = np.maximum(g, 1e-300)
+    d = s / g
+    J = np.einsum("ni,nj->nij", p, p) / g[:, None, None]
+    qi = np.zeros_like(q)
+    qi[:, :2] = q[:, :2]
+    J -= (s / g**3 * 4.0)[:, None, None] * np.einsum("ni,nj->nij", qi, p)
+    return d, J.reshape(-1, 9)
 
 
 def refine_circle(
@@ -293,7 +313,8 @@ def refine_circle(
     points' first-order geometric distances to the projected circle), with covariance.
 
     This is the tightly coupled version of eqs. 6-8: both views constrain centre, normal and
-    radius at once, instead of averaging per-view normals.
+    radius at once, instead of averaging per-view normals. Jacobians: analytic from the
+    distances to the conics' entries, numerical from the conics to the 6 parameters.
 
     Args:
         left_points, right_points: (N, 2) / (M, 2) undistorted edge points of the ring's
@@ -301,17 +322,20 @@ def refine_circle(
         sigma_px: edge point noise; estimated from the residuals if None.
     """
     cams = [
-        (rig.K_left, Rigid3.identity(), np.asarray(left_points, float)),
-        (rig.K_right, rig.right_from_left, np.asarray(right_points, float)),
+        (
+            rig.K_left,
+            Rigid3.identity(),
+            np.c_[np.asarray(left_points, float).reshape(-1, 2), np.ones(len(left_points))],
+        ),
+        (
+            rig.K_right,
+            rig.right_from_left,
+            np.c_[np.asarray(right_points, float).reshape(-1, 2), np.ones(len(right_points))],
+        ),
     ]
     n_pts = sum(len(p) for _, _, p in cams)
     if n_pts < 12:
         raise GeometryFailure(f"too few ring edge points to fit a circle ({n_pts})")
-
-    def residuals(c: np.ndarray, n: np.ndarray, r: float) -> np.ndarray:
-        return np.concatenate(
-            [sampson_distance(p, _circle_conic(K, T, c, n, r)) for K, T, p in cams]
-        )
 
     def unpack(
         x: np.ndarray, c0: np.ndarray, n0: np.ndarray, r0: float
@@ -320,29 +344,38 @@ def refine_circle(
         n = n0 + x[3] * u + x[4] * v
         return c0 + x[:3], n / np.linalg.norm(n), r0 * math.exp(x[5])
 
-    c, n, r = np.asarray(center, float), np.asarray(normal, float), float(radius)
     steps = np.array([1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
-    for _ in range(iterations):
-        r0 = residuals(c, n, r)
-        J = np.empty((r0.size, 6))
-        for k in range(6):
-            dx = np.zeros(6)
-            dx[k] = steps[k]
-            J[:, k] = (residuals(*unpack(dx, c, n, r)) - residuals(*unpack(-dx, c, n, r))) / (
-                2 * steps[k]
-            )
-        step = np.linalg.lstsq(J, -r0, rcond=None)[0]
-        c, n, r = unpack(step, c, n, r)
-        if np.abs(step[:3]).max() < 1e-8 and np.abs(step[3:]).max() < 1e-9:
-            break
-    res = residuals(c, n, r)
-    J = np.empty((res.size, 6))
-    for k in range(6):
-        dx = np.zeros(6)
-        dx[k] = steps[k]
-        J[:, k] = (residuals(*unpack(dx, c, n, r)) - residuals(*unpack(-dx, c, n, r))) / (
-            2 * steps[k]
-        )
+
+    def linearise(c: np.ndarray, n: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
+        res, jac = [], []
+        for K, T, p in cams:
+            C0 = _circle_conic(K, T, c, n, r)
+            dC = np.empty((9, 6))
+            for k in range(6):
+                dx = np.zeros(6)
+                dx[k] = steps[k]
+                Cp = _circle_conic(K, T, *unpack(dx, c, n, r))
+                Cm = _circle_conic(K, T, *unpack(-dx, c, n, r))
+                dC[:, k] = (Cp - Cm).reshape(9) / (2 * steps[k])
+            d, Jd = _sampson_and_jacobian(p, C0)
+            res.append(d)
+            jac.append(Jd @ dC)
+        return np.concatenate(res), np.vstack(jac)
+
+    c, n, r = np.asarray(center, float), np.asarray(normal, float), float(radius)
+    try:
+        for _ in range(iterations):
+            r0, J = linearise(c, n, r)
+            step = np.linalg.lstsq(J, -r0, rcond=None)[0]
+            c, n, r = unpack(step, c, n, r)
+            if np.abs(step[:3]).max() < 1e-7 and np.abs(step[3:]).max() < 1e-8:
+                break
+        res, J = linearise(c, n, r)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        # An edge-on ring: the conics degenerate (singular homography) or diverge.
+        raise GeometryFailure("the ring circle fit diverged (ring seen nearly edge-on)") from None
+    if not (np.all(np.isfinite(res)) and np.all(np.isfinite(J))):
+        raise GeometryFailure("the ring circle fit diverged (ring seen nearly edge-on)")
     s2 = sigma_px**2 if sigma_px is not None else float(res @ res) / max(res.size - 6, 1)
     try:
         cov6 = np.linalg.inv(J.T @ J) * s2
