@@ -7,12 +7,16 @@ to the tracked points.
 
 A ring is a wall with height: an image shows several nearly concentric ellipses (outer and
 inner front edge, the wall's base, a cast shadow). Taking the largest one mixes them, which
-costs centimetres in depth. The outer front edge is the outer boundary of the bright front face
-(the rim): brighter inside than outside along most of the perimeter, with the rim's inner edge
-(darker inside) a little further in. Candidates are scored on exactly that, and every chosen
-ellipse is refined on sub-pixel edges of the right polarity (`satpose.frontend.edges`).
+costs centimetres in depth. The outer front edge is the outer boundary of the rim's front
+face, a band of uniform brightness: brighter than what lies just outside it along most of
+the perimeter when lit, darker when in shade (`inside_dominance`). Every chosen ellipse is
+refined on sub-pixel edges of that polarity with a blurred-step fit that barely looks past
+the edge (`satpose.frontend.edges`), because crinkled foil beside the rim otherwise moves the
+edge by tenths of a pixel — differently in the two cameras, i.e. a depth bias.
 
-When tracking is healthy the detector only searches a window around the prediction.
+When tracking is healthy the detector only searches a window around the prediction. When it
+is not, `acquire` returns every plausible candidate and the stereo frontend keeps the pair
+that forms one 3-D circle (`satpose.frontend.pipeline`).
 """
 
 from __future__ import annotations
@@ -59,17 +63,18 @@ class RingConfig:
         lk_window_px, lk_levels: pyramidal LK window size and pyramid levels.
         max_track_distance_px: the paper's s2: a detection farther than this (mean distance
             of the tracked points to it) is rejected and the tracked fit used instead.
+        detect_every: while tracking, the detector searches the window around the prediction
+            every this many frames (1 = every frame, as the paper); in between the ellipse
+            fitted to the tracked points is refined directly on sub-pixel edges.
         min_tracked_points: fewer surviving LK points than this and the track is lost.
         roi_margin: the search window is the predicted ellipse's box grown by this fraction
             of its major axis plus ``roi_margin_px``.
         min_axis_px: smallest semi-minor axis accepted as a ring.
         max_axis_ratio: most elongated ellipse accepted (a / b), i.e. at most ~75 deg tilt.
         min_candidate_support: detector support below this is ignored.
-        min_bright_inside: fraction of the perimeter where the band just inside must be
-            brighter than the band just outside (the rim is bright).
-        min_rim_ratio: smallest inner/outer size ratio of the rim searched for.
-        min_rim_score: fraction of the perimeter where the rim's inner edge must be found at
-            a consistent ratio (`rim_score`).
+        min_bright_inside: fraction of the perimeter where the band just inside must differ
+            from the band just outside in the rim's sense (brighter for a lit rim, darker for
+            a rim in shade); `inside_dominance`.
         edge_points: normals sampled for the sub-pixel refinement.
         edge_search_px: half-width of the search along each normal.
         min_edge_fraction: fraction of normals that must find an edge of the right polarity.
@@ -82,16 +87,15 @@ class RingConfig:
     lk_window_px: int = 21
     lk_levels: int = 3
     max_track_distance_px: float = 3.0
+    detect_every: int = 5
     min_tracked_points: int = 8
     roi_margin: float = 0.25
     roi_margin_px: int = 12
     min_axis_px: float = 8.0
     max_axis_ratio: float = 4.0
     min_candidate_support: float = 0.35
-    min_bright_inside: float = 0.6
-    min_rim_ratio: float = 0.6
-    min_rim_score: float = 0.5
-    edge_points: int = 360
+    min_bright_inside: float = 0.55
+    edge_points: int = 240
     edge_search_px: float = 3.0
     min_edge_fraction: float = 0.5
     max_refine_rms_px: float = 0.6
@@ -110,59 +114,32 @@ class RingTrack:
     ellipse: Ellipse
     points: np.ndarray  # (n, 2) the tracked points on it
     gray8: np.ndarray  # the image they were sampled in
+    polarity: int  # +1: the rim is brighter than its surroundings, -1: darker
+    age: int = 0  # frames followed since acquisition
 
 
-def bright_inside_fraction(
-    image_s: np.ndarray, e: Ellipse, n: int = 72, band_px: float = 2.5
+def inside_dominance(
+    image_s: np.ndarray, e: Ellipse, polarity: int, n: int = 72, band_px: float = 2.5
 ) -> float:
-    """Fraction of the perimeter where the image just inside ``e`` is brighter than just
-    outside (bands at ``band_px`` on each side)."""
+    """Fraction of the perimeter where the image just inside ``e`` is brighter
+    (``polarity = +1``) or darker (``-1``) than just outside (bands at ``band_px``)."""
     p = e.points(n)
     nrm = e.normals(n)
     both = np.concatenate([p - band_px * nrm, p + band_px * nrm]).astype(np.float32)
     vals = cv2.remap(
         image_s, both[:, 0:1], both[:, 1:2], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
     )[:, 0]
-    return float(np.mean(vals[:n] > vals[n:] + 0.01))
-
-
-def rim_score(
-    image_s: np.ndarray, e: Ellipse, min_ratio: float, n: int = 90
-) -> tuple[float, float]:
-    """How much ``e`` looks like the outer edge of a bright rim: a band just inside it that is
-    brighter than what lies further in, ending at an inner edge at a constant fraction of the
-    size (the rim's inner edge, a concentric ellipse scaled by ``r_in / r_out``).
-
-    Profiles run from the centre outward at scale factors ``f`` in ``[min_ratio, 1]``; for
-    each angle the strongest dark-to-bright step going outward (bright rim outside it) gives
-    ``f_i``.
-
-    Returns:
-        (fraction of angles whose ``f_i`` lies within 0.03 of the median, the median ratio).
-    """
-    f = np.linspace(min_ratio, 0.995, 48, dtype=np.float32)
-    p = e.points(n) - e.center
-    pos = e.center[None, None, :] + f[None, :, None] * p[:, None, :]  # (n, F, 2)
-    prof = cv2.remap(
-        image_s,
-        pos[..., 0].astype(np.float32),
-        pos[..., 1].astype(np.float32),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
-    step = prof[:, 2:] - prof[:, :-2]  # brighter outward = rising
-    k = np.argmax(step, axis=1)
-    strong = step[np.arange(n), k] > 0.04
-    fi = f[1:-1][k]
-    if strong.sum() < n // 3:
-        return 0.0, 0.0
-    med = float(np.median(fi[strong]))
-    # The band between the inner edge and the candidate must be bright compared with inside.
-    return float(np.mean(strong & (np.abs(fi - med) < 0.03))), med
+    return float(np.mean(polarity * (vals[:n] - vals[n:]) > 0.01))
 
 
 class RingTracker:
-    """Finds and follows the ring's outer front edge in one camera."""
+    """Finds and follows the ring's outer front edge in one camera.
+
+    Two modes: `follow` while a track exists (LK prediction, detection in a window, nearest
+    detection or the tracked fit), `acquire` otherwise (every plausible ellipse of the whole
+    image, refined; the caller picks the pair that makes one 3-D circle in both cameras).
+    Neither mode changes the track: the caller `commit`s the observation it keeps.
+    """
 
     def __init__(
         self, camera: Camera, detector: Detector, config: RingConfig | None = None
@@ -171,7 +148,6 @@ class RingTracker:
         self.detector = detector
         self.config = config or RingConfig()
         self.track: RingTrack | None = None
-        self._raw: np.ndarray | None = None
 
     def reset(self) -> None:
         self.track = None
@@ -201,7 +177,7 @@ class RingTracker:
         except ConicError:
             return None
 
-    def _roi(self, e: Ellipse, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    def _roi(self, e: Ellipse, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
         m = self.config.roi_margin * e.a + self.config.roi_margin_px
         x0 = max(0, int(e.cx - e.a - m))
         y0 = max(0, int(e.cy - e.a - m))
@@ -209,63 +185,34 @@ class RingTracker:
         y1 = min(shape[0], math.ceil(e.cy + e.a + m))
         return x0, y0, x1, y1
 
-    def candidates(
-        self, image: PreparedImage, roi: tuple[int, int, int, int] | None, image_s: np.ndarray
-    ) -> list[Ellipse]:
-        """Detected ellipses that could be the outer front edge, largest first."""
+    def _plausible(
+        self,
+        image: PreparedImage,
+        roi: tuple[int, int, int, int] | None,
+        image_s: np.ndarray,
+        polarity: int | None,
+    ) -> list[tuple[Ellipse, int]]:
+        """Detected ellipses that could be the outer front edge with the rim's polarity
+        (``+1`` brighter inside, ``-1`` darker; ``None``: whichever dominates), largest first."""
         cfg = self.config
         out = []
         for c in self.detector(image.gray8, roi):
             e = c.ellipse
-            if c.support < cfg.min_candidate_support or c.polarity < 0:
+            if c.support < cfg.min_candidate_support:
                 continue
             if e.b < cfg.min_axis_px or e.a / e.b > cfg.max_axis_ratio:
                 continue
-            if bright_inside_fraction(image_s, e) < cfg.min_bright_inside:
+            pols = (polarity,) if polarity is not None else (+1, -1)
+            dom, pol = max((inside_dominance(image_s, e, p), p) for p in pols)
+            if dom < cfg.min_bright_inside:
                 continue
-            if rim_score(image_s, e, cfg.min_rim_ratio)[0] < cfg.min_rim_score:
-                continue
-            out.append(e)
-        return sorted(out, key=lambda e: -(e.a + e.b))
+            out.append((e, pol))
+        return sorted(out, key=lambda ep: -(ep[0].a + ep[0].b))
 
-    def update(self, image: PreparedImage) -> tuple[EllipseObservation | None, str | None]:
-        """Measure the ring in this camera's new image; returns ``(observation, None)`` or
-        ``(None, reason)``. The track is kept across frames."""
-        if image.problem is not None:
-            self.reset()
-            return None, f"ring ({self.camera.value}): image {image.problem}"
-        cfg = self.config
-        image_s = smoothed(image.gray, cfg.edges)
-        self._raw = image.gray
-        predicted = self.prediction(image)
-        source = "detected"
-        if predicted is None:
-            self.reset()
-            found = self.candidates(image, None, image_s)
-            chosen = None
-            for e in found:  # largest first; the first that refines cleanly wins
-                if self._refine(image_s, e) is not None:
-                    chosen = e
-                    break
-            if chosen is None:
-                return None, f"ring ({self.camera.value}): no bright ellipse found"
-        else:
-            found = self.candidates(image, self._roi(predicted, image.gray.shape), image_s)
-            pts = predicted.points(64)
-            chosen = None
-            best = cfg.max_track_distance_px
-            for e in found:
-                d = float(np.mean(np.abs(_distance(pts, e))))
-                if d < best:
-                    chosen, best = e, d
-            if chosen is None:
-                chosen, source = predicted, "tracked"
-        refined = self._refine(image_s, chosen)
-        if refined is None:
-            self.reset()
-            return None, f"ring ({self.camera.value}): weak edge support around the ellipse"
+    def _observation(
+        self, refined: tuple[Ellipse, np.ndarray, float, np.ndarray], source: str
+    ) -> EllipseObservation:
         ell, cov, rms, inliers = refined
-        self.track = RingTrack(ellipse=ell, points=ell.points(cfg.track_points), gray8=image.gray8)
         return EllipseObservation(
             camera=self.camera,
             center_px=ell.center,
@@ -276,27 +223,91 @@ class RingTracker:
             edge_points_px=inliers,
             sigma_px=max(rms, 0.02),
             source=source,
-        ), None
+        )
+
+    def follow(self, image: PreparedImage) -> tuple[EllipseObservation | None, str | None]:
+        """Measure the ring near where the track predicts it. ``(None, reason)`` if the track
+        is lost (the caller then acquires)."""
+        if self.track is None:
+            return None, f"ring ({self.camera.value}): not tracking"
+        if image.problem is not None:
+            return None, f"ring ({self.camera.value}): image {image.problem}"
+        cfg = self.config
+        image_s = smoothed(image.gray, cfg.edges)
+        predicted = self.prediction(image)
+        if predicted is None:
+            return None, f"ring ({self.camera.value}): track lost (Lucas-Kanade)"
+        pol = self.track.polarity
+        chosen, source = predicted, "tracked"
+        self.track.age += 1
+        if self.track.age % cfg.detect_every == 0:
+            found = self._plausible(image, self._roi(predicted, image.gray.shape), image_s, pol)
+            pts = predicted.points(64)
+            best = cfg.max_track_distance_px
+            for e, _ in found:
+                d = float(np.mean(np.abs(_distance(pts, e))))
+                if d < best:
+                    chosen, best, source = e, d, "detected"
+        refined = self._refine(image_s, image.gray, chosen, pol)
+        if refined is None:
+            return None, f"ring ({self.camera.value}): weak edge support around the prediction"
+        return self._observation(refined, source), None
+
+    def acquire(
+        self, image: PreparedImage, max_candidates: int = 4
+    ) -> list[tuple[EllipseObservation, int]]:
+        """Every plausible ring edge in the whole image, refined, largest first, with its
+        polarity; at most ``max_candidates``."""
+        if image.problem is not None:
+            return []
+        cfg = self.config
+        image_s = smoothed(image.gray, cfg.edges)
+        out = []
+        for e, pol in self._plausible(image, None, image_s, None):
+            refined = self._refine(image_s, image.gray, e, pol)
+            if refined is not None:
+                out.append((self._observation(refined, "detected"), pol))
+                if len(out) >= max_candidates:
+                    break
+        return out
+
+    def commit(self, obs: EllipseObservation, image: PreparedImage, polarity: int) -> None:
+        """Keep ``obs`` as the track for the next frame."""
+        ell = Ellipse.from_params(
+            [obs.center_px[0], obs.center_px[1], obs.axes_px[0], obs.axes_px[1], obs.angle_rad]
+        )
+        age = self.track.age if self.track is not None else 0
+        self.track = RingTrack(
+            ellipse=ell,
+            points=ell.points(self.config.track_points),
+            gray8=image.gray8,
+            polarity=polarity,
+            age=age,
+        )
 
     def _refine(
-        self, image_s: np.ndarray, e: Ellipse
+        self, image_s: np.ndarray, raw: np.ndarray, e: Ellipse, polarity: int
     ) -> tuple[Ellipse, np.ndarray, float, np.ndarray] | None:
-        """Sub-pixel edges of the bright-inside boundary near ``e`` and a robust geometric fit
+        """Sub-pixel edges of the given polarity near ``e`` and a robust geometric fit
         (iteratively dropping points beyond ``outlier_sigma`` robust standard deviations).
         None if too few edges support it or the fit is poor."""
         cfg = self.config
         n = cfg.edge_points
         half = cfg.edge_search_px
-        for _ in range(3):
+        rms = np.inf
+        cov = np.eye(5)
+        keep = np.zeros(0, bool)
+        P = np.zeros((0, 2))
+        for _ in range(2):
             pts, _ = edges_along_normals(
-                image_s, e.points(n), e.normals(n), +1, half, cfg.edges, raw=self._raw
+                image_s, e.points(n), e.normals(n), polarity, half, cfg.edges, raw=raw
             )
             P = pts[np.isfinite(pts[:, 0])]
             if P.shape[0] < cfg.min_edge_fraction * n:
                 return None
             ell = e
             try:
-                for _ in range(3):
+                for _ in range(2):
                     r = _distance(P, ell)
                     sigma = max(1.4826 * float(np.median(np.abs(r))), 0.05)
                     keep = np.abs(r) < cfg.outlier_sigma * sigma
