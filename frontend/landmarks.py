@@ -103,12 +103,22 @@ class LandmarkTracker:
         self.rig = rig
         self.config = config or LandmarkConfig()
         self.tracks: dict[int, _Track] = {}
+        self._kinds: dict[int, LandmarkKind] = {}  # every id ever issued
         self._next_id = first_id
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
 
     def reset(self) -> None:
         self.tracks.clear()
         self._prev = None
+
+    def rename(self, mapping: dict[int, int]) -> None:
+        """Give tracks the ids of the landmarks they were re-identified as."""
+        for new, old in mapping.items():
+            if new in self.tracks and old not in self.tracks:
+                track = self.tracks.pop(new)
+                track.track_id = old
+                self.tracks[old] = track
+                self._kinds[old] = track.kind
 
     def _lk(
         self, prev: np.ndarray, cur: np.ndarray, pts: np.ndarray, guess: np.ndarray | None
@@ -149,7 +159,8 @@ class LandmarkTracker:
             detections: ``(kind, left points (N, 2), right points (M, 2))`` per kind.
             ring_depth_m: the ring centre's depth, if known (depth gate of stereo pairs).
             predicted: optional ``{track_id: (left px, right px)}`` where the caller expects
-                tracks (e.g. from the previous pose and twist); LK starts there.
+                landmarks (e.g. from the previous pose and twist and a map): LK starts there
+                for current tracks, and landmarks no longer tracked are re-identified there.
 
         Returns:
             One measurement per stereo pair, with its track id.
@@ -208,15 +219,39 @@ class LandmarkTracker:
                 assigned[p] = t
                 taken.add(t)
             X, cov = triangulate(self.rig, pl, pr, sigma_px=cfg.sigma_px[kind.value])
+            # Pairs no track claimed may be a known landmark seen again after a gap: the
+            # nearest predicted position of a landmark that is not being tracked.
+            if predicted:
+                dormant = [
+                    (
+                        float(
+                            np.linalg.norm(pl[p] - predicted[t][0])
+                            + np.linalg.norm(pr[p] - predicted[t][1])
+                        ),
+                        p,
+                        t,
+                    )
+                    for p in range(len(pairs))
+                    if p not in assigned
+                    for t in predicted
+                    if t not in self.tracks and self._kinds.get(t) == kind
+                ]
+                for d, p, t in sorted(dormant):
+                    if d < 2 * cfg.gate_px and p not in assigned and t not in taken:
+                        assigned[p] = t
+                        taken.add(t)
             for p in range(len(pairs)):
                 if not np.all(np.isfinite(X[p])):
                     continue
                 if p in assigned:
                     tid = assigned[p]
+                    if tid not in self.tracks:
+                        self.tracks[tid] = _Track(track_id=tid, kind=kind, left=pl[p], right=pr[p])
                 else:
                     tid = self._next_id
                     self._next_id += 1
                     self.tracks[tid] = _Track(track_id=tid, kind=kind, left=pl[p], right=pr[p])
+                    self._kinds[tid] = kind
                 track = self.tracks[tid]
                 track.left, track.right, track.missed = pl[p], pr[p], 0
                 seen.add(tid)

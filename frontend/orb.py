@@ -45,7 +45,7 @@ class OrbConfig:
 
     use_below_range_m: float = 3.5
     min_other_landmarks: int = 3
-    features: int = 800
+    features: int = 500
     max_extent: float = 4.0
     max_hamming: int = 48
     ratio: float = 0.8
@@ -71,7 +71,7 @@ class OrbTracker:
         self.orb = cv2.ORB_create(
             nfeatures=self.config.features,
             scaleFactor=1.2,
-            nlevels=6,
+            nlevels=4,
             edgeThreshold=15,
             patchSize=21,
             fastThreshold=12,

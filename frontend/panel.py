@@ -583,3 +583,156 @@ def _fit_blob(
     if darkness > config.max_darkness:
         return None
     return e, darkness
+
+
+# --------------------------------------------------------------------------------------------
+# Tracking: refine around the previous frame's result instead of searching the whole image
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class PanelTrackConfig:
+    """Frame-to-frame tracking of the panel outline and the components.
+
+    Attributes:
+        points_per_side: points along each visible side carried by Lucas-Kanade.
+        min_good_sides: a tracked outline is kept if at least this many sides refine cleanly.
+        redetect_every: components are searched afresh every this many frames (tracked ones
+            are refined in between); the panel is searched afresh whenever tracking fails.
+        lk_window_px, lk_levels: Lucas-Kanade settings.
+    """
+
+    points_per_side: int = 6
+    min_good_sides: int = 3
+    redetect_every: int = 5
+    lk_window_px: int = 21
+    lk_levels: int = 3
+
+
+def _lk(
+    prev8: np.ndarray, cur8: np.ndarray, pts: np.ndarray, config: PanelTrackConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    if len(pts) == 0:
+        return pts, np.zeros(0, bool)
+    out, st, _ = cv2.calcOpticalFlowPyrLK(
+        prev8,
+        cur8,
+        pts.astype(np.float32).reshape(-1, 1, 2),
+        None,
+        winSize=(config.lk_window_px, config.lk_window_px),
+        maxLevel=config.lk_levels,
+        criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+    )
+    if out is None:
+        return pts, np.zeros(len(pts), bool)
+    return out.reshape(-1, 2), st.reshape(-1).astype(bool)
+
+
+class PanelTracker:
+    """Panel corners and components in one camera, tracked between frames."""
+
+    def __init__(
+        self,
+        corners: CornerConfig,
+        components: ComponentConfig,
+        config: PanelTrackConfig | None = None,
+    ) -> None:
+        self.corner_config = corners
+        self.component_config = components
+        self.config = config or PanelTrackConfig()
+        self.quad: PanelQuad | None = None
+        self.components = np.zeros((0, 2))
+        self._prev8: np.ndarray | None = None
+        self._frames_since_detection = self.config.redetect_every  # detect on frame one
+
+    def reset(self) -> None:
+        self.quad = None
+        self.components = np.zeros((0, 2))
+        self._prev8 = None
+
+    def update(
+        self,
+        gray: np.ndarray,
+        gray8: np.ndarray,
+        image_s: np.ndarray,
+        ring: Ellipse,
+        with_components: bool,
+    ) -> tuple[PanelQuad | None, np.ndarray]:
+        """The panel outline (or None) and the component centres (N, 2) in this image."""
+        quad = self._follow_quad(gray, gray8, image_s) if self.quad is not None else None
+        if quad is None:
+            quad = find_panel(gray, gray8, ring, self.corner_config, image_s)
+        comps = np.zeros((0, 2))
+        if with_components:
+            comps = self._components(gray, gray8, image_s, ring, quad)
+        self.quad = quad
+        self.components = comps
+        self._prev8 = gray8
+        return quad, comps
+
+    def _follow_quad(
+        self, gray: np.ndarray, gray8: np.ndarray, image_s: np.ndarray
+    ) -> PanelQuad | None:
+        assert self.quad is not None and self._prev8 is not None
+        cfg = self.config
+        h, w = gray.shape
+        old = self.quad
+        samples, owner = [], []
+        for q in range(4):
+            a, b = old.corners[(q - 1) % 4], old.corners[q]
+            t = np.linspace(0.15, 0.85, cfg.points_per_side)
+            pts = a[None, :] + t[:, None] * (b - a)[None, :]
+            ok = (pts[:, 0] > 10) & (pts[:, 0] < w - 11) & (pts[:, 1] > 10) & (pts[:, 1] < h - 11)
+            samples.append(pts[ok])
+            owner += [q] * int(ok.sum())
+        if not owner:
+            return None
+        moved, st = _lk(self._prev8, gray8, np.vstack(samples), cfg)
+        owner_a = np.array(owner)
+        lines = old.lines.copy()
+        for q in range(4):
+            P = moved[(owner_a == q) & st]
+            if len(P) >= 2:
+                m = P.mean(axis=0)
+                _, _, Vt = np.linalg.svd(P - m)
+                n = Vt[1] if Vt[1] @ old.lines[q][:2] > 0 else -Vt[1]
+                lines[q] = np.array([n[0], n[1], -n @ m])
+        crossings = [_intersect(lines[q], lines[(q + 1) % 4]) for q in range(4)]
+        if any(c is None for c in crossings):
+            return None
+        quad = _refine_quad(image_s, lines, np.array(crossings), gray.shape, self.corner_config)
+        if quad is None:
+            return None
+        good = int(np.sum(quad.rms_px <= self.corner_config.max_line_rms_px))
+        visible_sides = sum(len(s) > 0 for s in samples)
+        if good < min(cfg.min_good_sides, visible_sides):
+            return None
+        return quad
+
+    def _components(
+        self,
+        gray: np.ndarray,
+        gray8: np.ndarray,
+        image_s: np.ndarray,
+        ring: Ellipse,
+        quad: PanelQuad | None,
+    ) -> np.ndarray:
+        cfg = self.config
+        ccfg = self.component_config
+        kept: list[np.ndarray] = []
+        if len(self.components) and self._prev8 is not None:
+            moved, st = _lk(self._prev8, gray8, self.components, cfg)
+            blob_s = smoothed(gray, ccfg.edges)
+            r0 = max(ccfg.min_radius_px, 0.12 * ring.b)
+            for c in moved[st]:
+                fit = _fit_blob(gray, blob_s, c, r0, ring, ccfg)
+                if fit is not None:
+                    kept.append(fit[0].center)
+        self._frames_since_detection += 1
+        if self._frames_since_detection >= cfg.redetect_every:
+            self._frames_since_detection = 0
+            corners = quad.corners if quad is not None and quad.visible.all() else None
+            for c in find_components(gray, gray8, ring, ccfg, corners):
+                if all(np.linalg.norm(c - k) > 3.0 for k in kept):
+                    kept.append(c)
+        return np.array(kept).reshape(-1, 2)

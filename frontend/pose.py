@@ -178,14 +178,10 @@ class TargetFrameTracker:
         init = self._initial_pose(ring, mapped)
         for _ in range(3):  # drop gross mismatches, refit
             T, info, res = _gauss_newton(init, ring, mapped, self.map, self.config.map_sigma_m)
-            bad = [
-                lm
-                for lm, r in zip(mapped, res, strict=True)
-                if r > self.config.max_landmark_residual_sigma
-            ]
-            if not bad or len(mapped) - len(bad) < (1 if ring is not None else 3):
+            bad = res > self.config.max_landmark_residual_sigma
+            if not bad.any() or len(mapped) - int(bad.sum()) < (1 if ring is not None else 3):
                 break
-            mapped = [lm for lm in mapped if lm not in bad]
+            mapped = [lm for lm, b in zip(mapped, bad, strict=True) if not b]
             init = T
         try:
             cov = np.linalg.inv(info)
@@ -208,6 +204,67 @@ class TargetFrameTracker:
         src = np.array([self.map[lm.track_id].position for lm in mapped])
         dst = np.array([lm.point_m for lm in mapped])
         return _umeyama(src, dst)
+
+    # -- relocalisation ---------------------------------------------------------------------------
+
+    def relocalize(
+        self,
+        ring: RingMeasurement,
+        landmarks: Sequence[LandmarkMeasurement],
+        gate_m: float = 0.03,
+        angle_tol_deg: float = 3.0,
+    ) -> dict[int, int]:
+        """Re-identify landmarks after tracking was lost: ``{new track id: mapped id}``.
+
+        The ring fixes the origin and z; the unknown rotation about z is the angle on which
+        most (detected, mapped) pairs of the same kind agree, each pair matching in distance
+        from the axis and height above the ring plane within ``gate_m``. Needs two agreeing
+        pairs; returns ``{}`` otherwise.
+        """
+        pts = [
+            lm
+            for lm in landmarks
+            if lm.point_m is not None
+            and lm.kind != LandmarkKind.ORB
+            and lm.track_id not in self.map
+        ]
+        mapped = [(tid, mp) for tid, mp in self.map.items() if mp.kind != LandmarkKind.ORB]
+        if len(pts) < 2 or len(mapped) < 2:
+            return {}
+        n = ring.normal
+        x0, y0 = tangent_basis(n)
+        votes = []
+        for lm in pts:
+            assert lm.point_m is not None
+            d = lm.point_m - ring.center_m
+            a = math.atan2(float(d @ y0), float(d @ x0))
+            rho, h = math.hypot(float(d @ x0), float(d @ y0)), float(d @ n)
+            for tid, mp in mapped:
+                if mp.kind != lm.kind:
+                    continue
+                p = mp.position
+                if abs(math.hypot(p[0], p[1]) - rho) > gate_m or abs(p[2] - h) > gate_m:
+                    continue
+                votes.append(((a - math.atan2(p[1], p[0])) % (2 * math.pi), lm.track_id, tid))
+        if len(votes) < 2:
+            return {}
+        tol = math.radians(angle_tol_deg)
+        best: list[tuple[float, int, int]] = []
+        for psi, _, _ in votes:
+            group = [
+                v for v in votes if abs((v[0] - psi + math.pi) % (2 * math.pi) - math.pi) < tol
+            ]
+            if len({v[1] for v in group}) > len({v[1] for v in best}):
+                best = group
+        if len({v[1] for v in best}) < 2:
+            return {}
+        mapping: dict[int, int] = {}
+        used: set[int] = set()
+        for _, new, old in sorted(best, key=lambda v: v[1]):
+            if new not in mapping and old not in used:
+                mapping[new] = old
+                used.add(old)
+        return mapping
 
     # -- map -----------------------------------------------------------------------------------
 
@@ -259,35 +316,44 @@ def _gauss_newton(
     Returns:
         (pose, information matrix 6x6, per-landmark Mahalanobis residual norms).
     """
-    blocks: list[tuple[str, np.ndarray, np.ndarray]] = []
-    if ring is not None:
-        blocks.append(("centre", ring.center_m, np.linalg.inv(ring.covariance[:3, :3])))
-        B = np.c_[tangent_basis(ring.normal)]  # 3x2
-        Cn = B.T @ ring.covariance[3:6, 3:6] @ B
-        blocks.append(("normal", B, np.linalg.inv(Cn)))
-    for lm in mapped:
-        assert lm.point_m is not None and lm.covariance is not None
-        W = np.linalg.inv(lm.covariance + np.eye(3) * map_sigma**2)
-        blocks.append((f"lm{lm.track_id}", lm.point_m, W))
-    positions = {f"lm{lm.track_id}": world[lm.track_id].position for lm in mapped}
     ez = np.array([0.0, 0.0, 1.0])
+    ring_blocks = []
+    if ring is not None:
+        B = np.c_[tangent_basis(ring.normal)]  # 3x2
+        ring_blocks = [
+            (
+                np.linalg.inv(ring.covariance[:3, :3]),
+                np.linalg.inv(B.T @ ring.covariance[3:6, 3:6] @ B),
+                B,
+            )
+        ]
+    # Landmarks, vectorised: map positions P (M, 3), observations X (M, 3), weights W (M, 3, 3).
+    P = np.array([world[lm.track_id].position for lm in mapped]).reshape(-1, 3)
+    X = np.array([lm.point_m for lm in mapped]).reshape(-1, 3)
+    C = np.array([lm.covariance for lm in mapped]).reshape(-1, 3, 3)
+    W = np.linalg.inv(C + np.eye(3) * map_sigma**2) if len(mapped) else np.zeros((0, 3, 3))
     info = np.zeros((6, 6))
     for _ in range(iterations):
         H = np.zeros((6, 6))
         g = np.zeros(6)
-        for name, obs, W in blocks:
-            if name == "centre":
-                r = T.t - obs
-                J = np.c_[np.zeros((3, 3)), T.R]
-            elif name == "normal":  # obs is the tangent basis B (3x2)
-                r = obs.T @ (T.R @ ez)
-                J = obs.T @ np.c_[-T.R @ skew(ez), np.zeros((3, 3))]
-            else:
-                p = positions[name]
-                r = T.R @ p + T.t - obs
-                J = np.c_[-T.R @ skew(p), T.R]
-            H += J.T @ W @ J
-            g += J.T @ W @ r
+        for Wc, Wn, B in ring_blocks:
+            assert ring is not None
+            Jc = np.c_[np.zeros((3, 3)), T.R]
+            rc = T.t - ring.center_m
+            Jn = B.T @ np.c_[-T.R @ skew(ez), np.zeros((3, 3))]
+            rn = B.T @ (T.R @ ez)
+            H += Jc.T @ Wc @ Jc + Jn.T @ Wn @ Jn
+            g += Jc.T @ Wc @ rc + Jn.T @ Wn @ rn
+        if len(mapped):
+            RP = P @ T.R.T
+            r = RP + T.t - X  # (M, 3)
+            # J_m = [-R [p_m]x, R] = R [-[p_m]x, I]
+            Jl = np.zeros((len(mapped), 3, 6))
+            Jl[:, :, :3] = -np.einsum("ij,mjk->mik", T.R, _skew_many(P))
+            Jl[:, :, 3:] = T.R
+            WJ = np.einsum("mij,mjk->mik", W, Jl)
+            H += np.einsum("mji,mjk->ik", Jl, WJ)
+            g += np.einsum("mji,mj->i", WJ, r)
         info = H
         try:
             dx = -np.linalg.solve(H, g)
@@ -296,10 +362,17 @@ def _gauss_newton(
         T = Rigid3(R=T.R @ rotvec_to_matrix(dx[:3]), t=T.t + T.R @ dx[3:])
         if np.abs(dx).max() < 1e-10:
             break
-    res = []
-    for lm in mapped:
-        assert lm.point_m is not None and lm.covariance is not None
-        r = T.R @ positions[f"lm{lm.track_id}"] + T.t - lm.point_m
-        W = np.linalg.inv(lm.covariance + np.eye(3) * map_sigma**2)
-        res.append(math.sqrt(float(r @ W @ r)))
-    return T, info, np.array(res)
+    if not len(mapped):
+        return T, info, np.zeros(0)
+    r = P @ T.R.T + T.t - X
+    res = np.sqrt(np.einsum("mi,mij,mj->m", r, W, r))
+    return T, info, res
+
+
+def _skew_many(p: np.ndarray) -> np.ndarray:
+    """Cross-product matrices of the rows of ``p`` (M, 3) -> (M, 3, 3)."""
+    out = np.zeros((p.shape[0], 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -p[:, 2], p[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = p[:, 2], -p[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -p[:, 1], p[:, 0]
+    return out
