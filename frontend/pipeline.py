@@ -1,0 +1,519 @@
+"""The stereo frontend of seed 000: one stereo frame in, one `FrameMeasurements` out.
+
+Per frame (timings of each stage go into ``FrameMeasurements.timings_ms``):
+
+1. ``undistort``: grey, [0, 1], lens distortion removed (`Undistorter`).
+2. ``ring``: the ring's outer front edge in each image (`RingTracker`), then the 3-D circle
+   fitted to both images' sub-pixel edge points (`refine_circle`), started from both of the
+   cone's circular sections (eqs. 6-8) and kept only if consistent (residuals, radius).
+3. ``panel``: panel corners (`find_panel`) and dark components (`find_components`) in each
+   image around the ring.
+4. ``landmarks``: stereo pairs, triangulation and track ids (`LandmarkTracker`), with
+   positions predicted from the previous pose and twist.
+5. ``orb``: at close range or with few landmarks, ORB features as landmarks (`OrbTracker`),
+   filtered by EPnP + RANSAC against the map.
+6. ``pose``: the per-frame pose in the non-cooperative target frame (`TargetFrameTracker`).
+
+Nothing here raises on bad images (black, saturated, ring out of view): the frame yields
+fewer measurements and the reasons in ``failures``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from satpose.datasets.errors import SatposeError
+from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix
+from satpose.datasets.sequence import Calibration, Frame
+from satpose.frontend.conics import ConicError, Ellipse
+from satpose.frontend.edges import smoothed
+from satpose.frontend.ellipses import EllipseDetectorConfig, detect_ellipses
+from satpose.frontend.landmarks import LandmarkConfig, LandmarkTracker
+from satpose.frontend.measurements import (
+    Camera,
+    EllipseObservation,
+    FrameMeasurements,
+    LandmarkKind,
+    LandmarkMeasurement,
+    RingMeasurement,
+)
+from satpose.frontend.orb import OrbConfig, OrbTracker, epnp_ransac
+from satpose.frontend.panel import (
+    ComponentConfig,
+    CornerConfig,
+    PanelTrackConfig,
+    PanelTracker,
+)
+from satpose.frontend.pose import PoseConfig, TargetFrameTracker
+from satpose.frontend.preprocess import PreparedImage, PreprocessConfig, Undistorter
+from satpose.frontend.ring import Detector, RingConfig, RingTracker
+from satpose.frontend.stereo import (
+    Circle3D,
+    GeometryFailure,
+    StereoRig,
+    circle_rms,
+    circle_scale,
+    cone_circle_candidates,
+    refine_circle,
+    tangent_basis,
+    triangulate,
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class StereoRingConfig:
+    """Checks on the 3-D ring.
+
+    Attributes:
+        max_rms_px: largest RMS distance of the edge points to the fitted circle's images.
+        max_pairs: when acquiring, at most this many left/right candidate pairs are tried.
+        max_radius_change: once the radius is known, a circle smaller by more than this
+            fraction is rejected (an inner edge); a larger one replaces the known radius (the
+            outer edge, found late).
+        radius_memory: frames over which the radius estimate is averaged.
+        normal_sigma_floor_deg, center_sigma_floor_m: standard deviations added to the fit's
+            normal and centre covariance for edge biases the fit cannot see (measured on the
+            rendered presets, docs/frontend.md).
+    """
+
+    max_rms_px: float = 0.6
+    max_pairs: int = 8
+    max_radius_change: float = 0.04
+    radius_memory: int = 20
+    normal_sigma_floor_deg: float = 0.7
+    center_sigma_floor_m: float = 0.003
+
+
+@dataclass(frozen=True, kw_only=True)
+class FrontendConfig:
+    """Everything the stereo frontend does, one nested config per stage."""
+
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+    ellipses: EllipseDetectorConfig = field(default_factory=EllipseDetectorConfig)
+    ring: RingConfig = field(default_factory=RingConfig)
+    stereo_ring: StereoRingConfig = field(default_factory=StereoRingConfig)
+    corners: CornerConfig = field(default_factory=CornerConfig)
+    components: ComponentConfig = field(default_factory=ComponentConfig)
+    use_components: bool = True
+    panel_tracking: PanelTrackConfig = field(default_factory=PanelTrackConfig)
+    landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
+    orb: OrbConfig = field(default_factory=OrbConfig)
+    pose: PoseConfig = field(default_factory=PoseConfig)
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.ms: dict[str, float] = {}
+
+    def __call__(self, name: str) -> _Stage:
+        return _Stage(self, name)
+
+
+class _Stage:
+    def __init__(self, timer: _Timer, name: str) -> None:
+        self.timer, self.name = timer, name
+
+    def __enter__(self) -> None:
+        self.t0 = time.perf_counter()
+
+    def __exit__(self, *exc: object) -> None:
+        dt = (time.perf_counter() - self.t0) * 1000.0
+        self.timer.ms[self.name] = self.timer.ms.get(self.name, 0.0) + dt
+
+
+class StereoFrontend:
+    """Turns stereo frames into measurements, keeping the tracking state between frames.
+
+    Args:
+        calibration: a stereo calibration (sequence format).
+        config: the frontend config.
+        detector: an ellipse detector ``(gray8, roi) -> candidates``; default: the
+            arc-support detector `satpose.frontend.ellipses.detect_ellipses`.
+    """
+
+    def __init__(
+        self,
+        calibration: Calibration,
+        config: FrontendConfig | None = None,
+        detector: Detector | None = None,
+    ) -> None:
+        self.config = config or FrontendConfig()
+        cfg = self.config
+        self.calibration = calibration
+        self.rig = StereoRig.from_calibration(calibration)
+        self.undistort = {
+            cam: Undistorter(calibration.camera(cam), cfg.preprocess) for cam in ("left", "right")
+        }
+        det = detector or (lambda gray8, roi: detect_ellipses(gray8, cfg.ellipses, roi))
+        self.rings = {cam: RingTracker(Camera(cam), det, cfg.ring) for cam in ("left", "right")}
+        self.panels = {
+            cam: PanelTracker(cfg.corners, cfg.components, cfg.panel_tracking)
+            for cam in ("left", "right")
+        }
+        self.landmarks = LandmarkTracker(self.rig, cfg.landmarks)
+        self.orb = OrbTracker(self.rig, cfg.orb)
+        self.target = TargetFrameTracker(config=cfg.pose)
+        self._history: list[tuple[float, Rigid3]] = []
+        self._radii: list[float] = []
+
+    # ------------------------------------------------------------------------------------------
+
+    def process_frame(self, frame: Frame) -> FrameMeasurements:
+        """Measure one frame of a loaded sequence (an unreadable image is a failure, not an
+        exception)."""
+        try:
+            left, right = frame.left(), frame.right()
+        except SatposeError as exc:
+            return FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(f"image: {exc}",))
+        return self.process(frame.index, frame.t_s, left, right)
+
+    def process(
+        self, index: int, t_s: float, left: np.ndarray, right: np.ndarray
+    ) -> FrameMeasurements:
+        """Measure one stereo frame.
+
+        Args:
+            index, t_s: frame index and time [s].
+            left, right: raw images as stored (grey or BGR, 8 or 16 bit, with distortion).
+        """
+        timer = _Timer()
+        failures: list[str] = []
+        with timer("undistort"):
+            try:
+                imgs = {
+                    "left": self.undistort["left"](left),
+                    "right": self.undistort["right"](right),
+                }
+            except SatposeError as exc:
+                return FrameMeasurements(
+                    frame=index, t_s=t_s, failures=(f"image: {exc}",), timings_ms=timer.ms
+                )
+        for cam, img in imgs.items():
+            if img.problem is not None:
+                failures.append(f"image ({cam}): {img.problem}")
+        predicted = self._predict(t_s)
+        with timer("ring"):
+            circles, obs, ellipses = self._ring(imgs, failures)
+        landmarks: list[LandmarkMeasurement] = []
+        with timer("panel"):
+            detections = self._panel(imgs, ellipses, failures)
+        with timer("landmarks"):
+            depth = float(circles[0].center[2]) if circles else None
+            pred_px = self._predicted_pixels(
+                predicted,
+                {tid: None for tid, mp in self.target.map.items() if mp.kind != LandmarkKind.ORB},
+            )
+            landmarks += self.landmarks.update(
+                imgs["left"].gray8, imgs["right"].gray8, detections, depth, pred_px
+            )
+        if self._need_orb(circles, landmarks):
+            with timer("orb"):
+                landmarks += self._orb(imgs, ellipses, depth, predicted, failures)
+        else:
+            self.orb.reset()
+        with timer("ring"):
+            ring = self._choose_ring(circles, obs, landmarks, predicted, failures)
+        with timer("pose"):
+            if (
+                ring is not None
+                and self.target.anchor_id is not None
+                and not any(lm.track_id in self.target.map for lm in landmarks)
+            ):
+                mapping = self.target.relocalize(ring, landmarks)
+                if mapping:
+                    self.landmarks.rename(mapping)
+                    landmarks = [
+                        replace(lm, track_id=mapping.get(lm.track_id, lm.track_id))
+                        for lm in landmarks
+                    ]
+            pose, reason = self.target.update(ring, landmarks)
+            if reason is not None:
+                failures.append(reason)
+        if pose is not None:
+            self._history = [*self._history[-1:], (t_s, pose.left_cam_from_target)]
+        return FrameMeasurements(
+            frame=index,
+            t_s=t_s,
+            ring=ring,
+            landmarks=tuple(landmarks),
+            pose=pose,
+            failures=tuple(failures),
+            timings_ms=timer.ms,
+        )
+
+    # -- prediction -------------------------------------------------------------------------------
+
+    def _predict(self, t_s: float) -> Rigid3 | None:
+        """The pose at ``t_s`` extrapolated at constant twist from the last two poses."""
+        if len(self._history) < 2:
+            return self._history[-1][1] if self._history else None
+        (t0, T0), (t1, T1) = self._history
+        if t1 <= t0:
+            return T1
+        d = T0.inverse() @ T1
+        s = (t_s - t1) / (t1 - t0)
+        if s > 5:  # too long since the last pose: do not extrapolate far
+            return None
+        step = Rigid3(R=rotvec_to_matrix(matrix_to_rotvec(d.R) * s), t=d.t * s)
+        return T1 @ step
+
+    def _predicted_pixels(
+        self, predicted: Rigid3 | None, tracks: dict
+    ) -> dict[int, tuple[np.ndarray, np.ndarray]] | None:
+        if predicted is None:
+            return None
+        out = {}
+        for tid in tracks:
+            mp = self.target.map.get(tid)
+            if mp is None:
+                continue
+            X = predicted.apply(mp.position)
+            pl, pr = self.rig.project(X[None])
+            out[tid] = (pl[0], pr[0])
+        return out
+
+    # -- ring -------------------------------------------------------------------------------
+
+    def _ring(
+        self, imgs: dict[str, PreparedImage], failures: list[str]
+    ) -> tuple[list[Circle3D], dict[str, EllipseObservation], dict[str, Ellipse]]:
+        """Ring ellipses in both images and the candidate 3-D circles they admit (the cone's
+        two-fold ambiguity survives a short baseline: both are kept, best fit first).
+
+        A camera that is tracking follows its track; one that is not acquires candidates,
+        and the largest pair that forms one consistent 3-D circle is taken."""
+        options: dict[str, list[tuple[EllipseObservation, int]]] = {}
+        for cam in ("left", "right"):
+            tracker = self.rings[cam]
+            if tracker.track is not None:
+                o, why = tracker.follow(imgs[cam])
+                if o is not None:
+                    options[cam] = [(o, tracker.track.polarity)]
+                    continue
+                failures.append(why or f"ring ({cam}): lost")
+                tracker.reset()
+            options[cam] = self.rings[cam].acquire(imgs[cam])
+            if not options[cam]:
+                failures.append(f"ring ({cam}): no ring-like ellipse found")
+        circles: list[Circle3D] = []
+        chosen: dict[str, tuple[EllipseObservation, int]] = {}
+        last_error = None
+        pairs = sorted(
+            ((lo, ro) for lo in options["left"] for ro in options["right"]),
+            key=lambda p: -float(p[0][0].axes_px.sum() + p[1][0].axes_px.sum()),
+        )
+        for lo, ro in pairs[: self.config.stereo_ring.max_pairs]:
+            try:
+                circles = self._circles(lo[0], ro[0])
+            except (GeometryFailure, ConicError, np.linalg.LinAlgError) as exc:
+                last_error = exc
+                continue
+            chosen = {"left": lo, "right": ro}
+            break
+        if not circles:
+            if last_error is not None:
+                failures.append(f"ring: {last_error}")
+            for tracker in self.rings.values():
+                tracker.reset()
+            obs = {cam: opts[0][0] for cam, opts in options.items() if opts}
+        else:
+            for cam, (o, pol) in chosen.items():
+                self.rings[cam].commit(o, imgs[cam], pol)
+            obs = {cam: o for cam, (o, _) in chosen.items()}
+        ellipses = {
+            cam: Ellipse.from_params(
+                [o.center_px[0], o.center_px[1], o.axes_px[0], o.axes_px[1], o.angle_rad]
+            )
+            for cam, o in obs.items()
+        }
+        return circles, obs, ellipses
+
+    def _circles(self, left: EllipseObservation, right: EllipseObservation) -> list[Circle3D]:
+        """Both circular sections of the left cone, each refined jointly on both images' edge
+        points (seed 000 eqs. 6-8 as the start), consistent ones only, best fit first."""
+        cfg = self.config.stereo_ring
+        R = self.rig.right_from_left.R
+        cand_r = cone_circle_candidates(self.rig.K_right, right.conic)
+        out: list[tuple[float, Circle3D]] = []
+        for n_l, d_l in cone_circle_candidates(self.rig.K_left, left.conic):
+            _, d_r = min(cand_r, key=lambda c: float(np.linalg.norm(R.T @ c[0] - n_l)))
+            pl = self.rig.K_left @ d_l
+            pr = self.rig.K_right @ d_r
+            X, _ = triangulate(self.rig, (pl[:2] / pl[2])[None], (pr[:2] / pr[2])[None])
+            if not np.all(np.isfinite(X[0])):
+                continue
+            radius = float(
+                np.linalg.norm(X[0]) / circle_scale(self.rig.K_left, left.conic, n_l, d_l)
+            )
+            try:
+                circ = refine_circle(
+                    self.rig,
+                    X[0],
+                    n_l,
+                    radius,
+                    left.edge_points_px,
+                    right.edge_points_px,
+                    iterations=6,
+                )
+            except GeometryFailure:
+                continue
+            rms = circle_rms(self.rig, circ, left.edge_points_px, right.edge_points_px)
+            if rms > cfg.max_rms_px:
+                continue
+            if self._radii and circ.radius < float(np.median(self._radii)) * (
+                1 - cfg.max_radius_change
+            ):
+                continue  # smaller than the ring seen so far: an inner edge, not the outer one
+            out.append((rms, _inflate(circ, cfg)))
+        if not out:
+            raise GeometryFailure(
+                "the two ring ellipses do not make one circle consistent with the ring seen so far"
+            )
+        out.sort(key=lambda x: x[0])
+        return [c for _, c in out]
+
+    def _choose_ring(
+        self,
+        circles: list[Circle3D],
+        obs: dict[str, EllipseObservation],
+        landmarks: list[LandmarkMeasurement],
+        predicted: Rigid3 | None,
+        failures: list[str],
+    ) -> RingMeasurement | None:
+        """Resolve the circle's two-fold ambiguity: the section whose normal agrees with the
+        plane of the panel landmarks (they sit on the face that carries the ring), else with
+        the predicted motion, else the best fit."""
+        if not circles:
+            return None
+        chosen = circles[0]
+        if len(circles) > 1:
+            ref = _landmark_plane_normal(landmarks, circles[0].center)
+            if ref is None and predicted is not None:
+                ref = predicted.R[:, 2]
+            if ref is not None:
+                chosen = min(circles, key=lambda c: -abs(float(c.normal @ ref)))
+            else:
+                failures.append(
+                    "ring: normal ambiguous (no landmarks, no motion yet); "
+                    "the best-fitting section was taken"
+                )
+        cfg = self.config.stereo_ring
+        if self._radii and chosen.radius > float(np.median(self._radii)) * (
+            1 + cfg.max_radius_change
+        ):
+            # A larger circle than before: the outer front edge was missed until now (the
+            # rim's inner edge is concentric and coplanar, so earlier poses stay valid).
+            self._radii = []
+        self._radii = [*self._radii[-(cfg.radius_memory - 1) :], chosen.radius]
+        return RingMeasurement(
+            ellipses=(obs["left"], obs["right"]),
+            center_m=chosen.center,
+            normal=chosen.normal,
+            radius_m=chosen.radius,
+            covariance=chosen.covariance,
+        )
+
+    # -- panel landmarks ------------------------------------------------------------------------
+
+    def _panel(
+        self, imgs: dict[str, PreparedImage], ellipses: dict[str, Ellipse], failures: list[str]
+    ) -> list[tuple[LandmarkKind, np.ndarray, np.ndarray]]:
+        cfg = self.config
+        if len(ellipses) < 2:
+            for tracker in self.panels.values():
+                tracker.reset()
+            return []
+        corners: dict[str, np.ndarray] = {}
+        comps: dict[str, np.ndarray] = {}
+        for cam in ("left", "right"):
+            img = imgs[cam]
+            image_s = smoothed(img.gray, cfg.corners.edges)
+            quad, comps[cam] = self.panels[cam].update(
+                img.gray, img.gray8, image_s, ellipses[cam], cfg.use_components
+            )
+            corners[cam] = quad.corners[quad.visible] if quad is not None else np.zeros((0, 2))
+        if len(corners["left"]) == 0:
+            failures.append("panel: no corners")
+        out = [(LandmarkKind.CORNER, corners["left"], corners["right"])]
+        if cfg.use_components:
+            out.append((LandmarkKind.COMPONENT, comps["left"], comps["right"]))
+        return out
+
+    # -- ORB --------------------------------------------------------------------------------------
+
+    def _need_orb(self, circles: list[Circle3D], landmarks: list[LandmarkMeasurement]) -> bool:
+        cfg = self.config.orb
+        if circles and float(np.linalg.norm(circles[0].center)) < cfg.use_below_range_m:
+            return True
+        return len(landmarks) < cfg.min_other_landmarks
+
+    def _orb(
+        self,
+        imgs: dict[str, PreparedImage],
+        ellipses: dict[str, Ellipse],
+        depth: float | None,
+        predicted: Rigid3 | None,
+        failures: list[str],
+    ) -> list[LandmarkMeasurement]:
+        pred = None
+        if predicted is not None:
+            pred = {
+                tid: px[0]
+                for tid, px in (
+                    self._predicted_pixels(predicted, {t.track_id: None for t in self.orb.tracks})
+                    or {}
+                ).items()
+            }
+        feats = self.orb.update(
+            imgs["left"].gray8,
+            imgs["right"].gray8,
+            ellipses.get("left"),
+            ellipses.get("right"),
+            depth,
+            pred,
+        )
+        mapped = [f for f in feats if f.track_id in self.target.map]
+        if len(mapped) >= self.config.orb.min_inliers:
+            P = np.array([self.target.map[f.track_id].position for f in mapped])
+            px = np.array([f.left_px for f in mapped])
+            res = epnp_ransac(self.rig.K_left, P, px, self.config.orb)
+            if res is None:
+                failures.append("orb: EPnP found no consistent pose")
+            else:
+                _, inliers = res
+                outliers = {f.track_id for f, ok in zip(mapped, inliers, strict=True) if not ok}
+                feats = [f for f in feats if f.track_id not in outliers]
+        return feats
+
+
+def _inflate(circ: Circle3D, cfg: StereoRingConfig) -> Circle3D:
+    """Add the model floors (``normal_sigma_floor_deg``, ``center_sigma_floor_m``) to the fit's
+    covariance: edge biases (shadows, the wall beside the rim) are not in the fit's noise."""
+    C = circ.covariance.copy()
+    s_n = math.radians(cfg.normal_sigma_floor_deg)
+    u, v = tangent_basis(circ.normal)
+    C[3:6, 3:6] += s_n**2 * (np.outer(u, u) + np.outer(v, v))
+    C[:3, :3] += np.eye(3) * cfg.center_sigma_floor_m**2
+    return Circle3D(center=circ.center, normal=circ.normal, radius=circ.radius, covariance=C)
+
+
+def _landmark_plane_normal(
+    landmarks: list[LandmarkMeasurement], center: np.ndarray
+) -> np.ndarray | None:
+    """Normal of the plane through the corner/component landmarks (>= 3, spread around the
+    ring), oriented toward the cameras; None if they do not define a plane."""
+    pts = np.array(
+        [lm.point_m for lm in landmarks if lm.point_m is not None and lm.kind != LandmarkKind.ORB]
+    ).reshape(-1, 3)
+    if len(pts) < 3:
+        return None
+    m = pts.mean(axis=0)
+    _, s, Vt = np.linalg.svd(pts - m)
+    if s[1] < 0.2 * s[0] or s[2] > 0.2 * s[1]:  # collinear, or not a plane
+        return None
+    n = Vt[2]
+    return -n if n @ center > 0 else n

@@ -1,0 +1,312 @@
+"""Result files: measurements as Parquet, trajectories as TUM, all written atomically.
+
+measurements.parquet holds one row per item (long format), so that any tool reading Parquet
+can filter it without knowing satpose; `read_measurements` rebuilds the frontend's
+`FrameMeasurements` exactly. Columns:
+
+- ``frame`` (int64), ``t_s`` (float64): the frame.
+- ``item`` (string): ``frame``, ``ellipse``, ``ring``, ``landmark``, ``pose``, ``failure``,
+  ``timing``.
+- ``camera`` (string): ``left``/``right`` for ellipses.
+- ``track_id`` (int64): landmark track id, -1 otherwise.
+- ``label`` (string): landmark kind, pose method, ellipse source or timing stage.
+- ``values`` (list<float64>): ellipse ``[cx, cy, a, b, angle]``; ring
+  ``[cx, cy, cz, nx, ny, nz, r]``; landmark ``[ul, vl, ur, vr, X, Y, Z]`` (NaN where
+  absent); pose ``[tx, ty, tz, qx, qy, qz, qw]``; timing ``[ms]``.
+- ``covariance`` (list<float64>): row-major, matching ``values`` (5x5; 7x7; 3x3 of X; 6x6
+  over [rotation, translation]).
+- ``points`` (list<float64>): ellipse edge points ``[x0, y0, x1, y1, ...]``.
+- ``sigma_px`` (float64): pixel noise of ellipses and landmarks.
+- ``text`` (string): failure reasons.
+
+TUM: ``t tx ty tz qx qy qz qw`` per line, space separated (readable by evo).
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from satpose.datasets.errors import SatposeError
+from satpose.datasets.geometry import Rigid3
+from satpose.frontend.measurements import (
+    EllipseObservation,
+    FrameMeasurements,
+    LandmarkMeasurement,
+    PoseMeasurement,
+    RingMeasurement,
+)
+
+
+class ResultFileError(SatposeError):
+    """A result file is missing, unreadable or malformed."""
+
+
+def atomic_write(path: str | Path, write: Any) -> Path:
+    """Call ``write(tmp_path)`` then rename the temporary file onto ``path``."""
+    path = Path(path)
+    tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+# ----------------------------------------------------------------------------------------------
+# Measurements
+# ----------------------------------------------------------------------------------------------
+
+
+def _row(m: FrameMeasurements, item: str, **kw: Any) -> dict[str, Any]:
+    base: dict[str, Any] = {
+        "frame": m.frame,
+        "t_s": m.t_s,
+        "item": item,
+        "camera": None,
+        "track_id": -1,
+        "label": None,
+        "values": [],
+        "covariance": [],
+        "points": [],
+        "sigma_px": np.nan,
+        "text": None,
+    }
+    base.update(kw)
+    return base
+
+
+def measurements_to_frame(items: Iterable[FrameMeasurements]) -> pd.DataFrame:
+    """The long-format table of a sequence of frame measurements."""
+    rows: list[dict[str, Any]] = []
+    for m in items:
+        rows.append(_row(m, "frame"))
+        if m.ring is not None:
+            for e in m.ring.ellipses:
+                rows.append(
+                    _row(
+                        m,
+                        "ellipse",
+                        camera=e.camera.value,
+                        label=e.source,
+                        values=[*e.center_px, *e.axes_px, e.angle_rad],
+                        covariance=e.covariance.ravel().tolist(),
+                        points=e.edge_points_px.ravel().tolist(),
+                        sigma_px=e.sigma_px,
+                    )
+                )
+            rows.append(
+                _row(
+                    m,
+                    "ring",
+                    values=[*m.ring.center_m, *m.ring.normal, m.ring.radius_m],
+                    covariance=m.ring.covariance.ravel().tolist(),
+                )
+            )
+        for lm in m.landmarks:
+            right = lm.right_px if lm.right_px is not None else [np.nan, np.nan]
+            point = lm.point_m if lm.point_m is not None else [np.nan] * 3
+            cov = lm.covariance.ravel().tolist() if lm.covariance is not None else []
+            rows.append(
+                _row(
+                    m,
+                    "landmark",
+                    track_id=lm.track_id,
+                    label=lm.kind.value,
+                    values=[*lm.left_px, *right, *point],
+                    covariance=cov,
+                    sigma_px=lm.sigma_px,
+                )
+            )
+        if m.pose is not None:
+            T = m.pose.left_cam_from_target
+            rows.append(
+                _row(
+                    m,
+                    "pose",
+                    label=m.pose.method.value,
+                    values=[*T.t, *T.quat_xyzw],
+                    covariance=m.pose.covariance.ravel().tolist(),
+                )
+            )
+        for f in m.failures:
+            rows.append(_row(m, "failure", text=f))
+        for stage, ms in m.timings_ms.items():
+            rows.append(_row(m, "timing", label=stage, values=[float(ms)]))
+    columns = [
+        "frame",
+        "t_s",
+        "item",
+        "camera",
+        "track_id",
+        "label",
+        "values",
+        "covariance",
+        "points",
+        "sigma_px",
+        "text",
+    ]
+    df = pd.DataFrame(rows, columns=columns)
+    return df.astype(
+        {"frame": "int64", "t_s": "float64", "track_id": "int64", "sigma_px": "float64"}
+    )
+
+
+def write_measurements(items: Sequence[FrameMeasurements], path: str | Path) -> Path:
+    """Write measurements.parquet atomically."""
+    df = measurements_to_frame(items)
+    return atomic_write(path, lambda tmp: df.to_parquet(tmp, index=False))
+
+
+def read_measurements(path: str | Path) -> list[FrameMeasurements]:
+    """Rebuild the frontend's per-frame measurements from measurements.parquet."""
+    p = Path(path)
+    if not p.is_file():
+        raise ResultFileError(f"{p}: measurements file is missing")
+    try:
+        df = pd.read_parquet(p)
+    except Exception as exc:  # pyarrow raises many types for corrupt files
+        raise ResultFileError(f"{p}: not a readable Parquet file ({exc})") from None
+    needed = {"frame", "t_s", "item", "values", "covariance"}
+    if not needed <= set(df.columns):
+        raise ResultFileError(f"{p}: missing columns {sorted(needed - set(df.columns))}")
+    by_frame: dict[int, list[dict[str, Any]]] = defaultdict(list)
+    for rec in df.to_dict("records"):
+        by_frame[int(rec["frame"])].append(rec)
+    out = []
+    for frame in sorted(by_frame):
+        recs = by_frame[frame]
+        out.append(_frame_from_rows(frame, recs))
+    return out
+
+
+def _arr(values: Any, shape: tuple[int, ...]) -> np.ndarray:
+    return np.asarray(list(values), dtype=float).reshape(shape)
+
+
+def _frame_from_rows(frame: int, recs: list[dict[str, Any]]) -> FrameMeasurements:
+    t_s = float(recs[0]["t_s"])
+    ellipses = []
+    ring = None
+    landmarks = []
+    pose = None
+    failures = []
+    timings = {}
+    for r in recs:
+        item = r["item"]
+        v = np.asarray(list(r["values"]), dtype=float)
+        if item == "ellipse":
+            ellipses.append(
+                EllipseObservation(
+                    camera=r["camera"],
+                    center_px=v[:2],
+                    axes_px=v[2:4],
+                    angle_rad=float(v[4]),
+                    conic=_conic(v),
+                    covariance=_arr(r["covariance"], (5, 5)),
+                    edge_points_px=_arr(r["points"], (-1, 2)),
+                    sigma_px=float(r["sigma_px"]),
+                    source=r["label"],
+                )
+            )
+        elif item == "ring":
+            ring = (v, _arr(r["covariance"], (7, 7)))
+        elif item == "landmark":
+            has_right = bool(np.all(np.isfinite(v[2:4])))
+            has_point = bool(np.all(np.isfinite(v[4:7])))
+            landmarks.append(
+                LandmarkMeasurement(
+                    track_id=int(r["track_id"]),
+                    kind=r["label"],
+                    left_px=v[:2],
+                    right_px=v[2:4] if has_right else None,
+                    sigma_px=float(r["sigma_px"]),
+                    point_m=v[4:7] if has_point else None,
+                    covariance=_arr(r["covariance"], (3, 3)) if has_point else None,
+                )
+            )
+        elif item == "pose":
+            pose = PoseMeasurement(
+                left_cam_from_target=Rigid3.from_quat_xyzw(v[3:7], v[:3]),
+                covariance=_arr(r["covariance"], (6, 6)),
+                method=r["label"],
+            )
+        elif item == "failure":
+            failures.append(str(r["text"]))
+        elif item == "timing":
+            timings[str(r["label"])] = float(v[0])
+    ring_m = None
+    if ring is not None:
+        v, cov = ring
+        ring_m = RingMeasurement(
+            ellipses=tuple(ellipses),
+            center_m=v[:3],
+            normal=v[3:6],
+            radius_m=float(v[6]),
+            covariance=cov,
+        )
+    return FrameMeasurements(
+        frame=frame,
+        t_s=t_s,
+        ring=ring_m,
+        landmarks=tuple(landmarks),
+        pose=pose,
+        failures=tuple(failures),
+        timings_ms=timings,
+    )
+
+
+def _conic(v: np.ndarray) -> np.ndarray:
+    from satpose.frontend.conics import Ellipse
+
+    return Ellipse.from_params(v).conic()
+
+
+# ----------------------------------------------------------------------------------------------
+# TUM trajectories
+# ----------------------------------------------------------------------------------------------
+
+
+def write_tum(t_s: Sequence[float], poses: Sequence[Rigid3], path: str | Path) -> Path:
+    """Write ``t tx ty tz qx qy qz qw`` lines atomically (the pose is ``left_cam_from_target``
+    or whatever the caller documents)."""
+    lines = [
+        " ".join(f"{x:.9f}" for x in (t, *T.t, *T.quat_xyzw))
+        for t, T in zip(t_s, poses, strict=True)
+    ]
+    text = "\n".join(lines) + ("\n" if lines else "")
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, list[Rigid3]]:
+    """Read a TUM trajectory: times (N,) and poses."""
+    p = Path(path)
+    if not p.is_file():
+        raise ResultFileError(f"{p}: trajectory file is missing")
+    t, poses = [], []
+    for k, line in enumerate(p.read_text().splitlines()):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        try:
+            v = np.array([float(x) for x in line.split()])
+        except ValueError:
+            raise ResultFileError(f"{p}: line {k + 1}: not 8 numbers") from None
+        if v.size != 8 or not np.all(np.isfinite(v)):
+            raise ResultFileError(
+                f"{p}: line {k + 1}: expected 8 finite numbers (t tx ty tz qx qy qz qw)"
+            )
+        q = v[4:8]
+        if abs(np.linalg.norm(q) - 1) > 1e-6:
+            raise ResultFileError(f"{p}: line {k + 1}: quaternion is not unit norm")
+        t.append(v[0])
+        poses.append(Rigid3.from_quat_xyzw(q / np.linalg.norm(q), v[1:4]))
+    return np.array(t), poses

@@ -1,0 +1,96 @@
+"""Accuracy metrics against ground truth, in the terms of seed 000's tables.
+
+A non-cooperative estimator defines its own target frame: its origin and z axis (the ring
+centre and normal) are physical, but its x axis points at whatever landmark it anchored on. The
+rotation errors are therefore reported both raw and after one constant body-frame rotation
+``R_off`` (``R_est R_off ~ R_true``), the least-squares one over the whole sequence.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotation_angle
+
+RANGE_BANDS_M: tuple[tuple[float, float], ...] = ((7.0, 5.0), (5.0, 3.0), (3.0, 0.0))
+"""Seed 000's range bands (its Table 2), far to near; a frame belongs to ``hi >= r > lo``
+(7 m itself counts in the first band)."""
+
+
+def body_rotation_offset(est: Sequence[Rigid3], truth: Sequence[Rigid3]) -> np.ndarray:
+    """The constant rotation ``R_off`` minimising ``sum ||R_est R_off - R_true||_F^2``."""
+    M = sum((e.R.T @ t.R for e, t in zip(est, truth, strict=True)), np.zeros((3, 3)))
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+@dataclass(frozen=True, kw_only=True)
+class PoseErrors:
+    """Per-frame errors of an estimated trajectory.
+
+    Attributes:
+        position_m: |t_est - t_true| (the ring centre's position error) [m].
+        rotation_deg: rotation error after the constant body-frame offset [deg].
+        rotation_raw_deg: rotation error without it [deg].
+        range_m: true range |t_true| [m].
+        offset_deg: angle of the body-frame offset [deg].
+    """
+
+    position_m: np.ndarray
+    rotation_deg: np.ndarray
+    rotation_raw_deg: np.ndarray
+    range_m: np.ndarray
+    offset_deg: float
+
+
+def pose_errors(
+    est: Sequence[Rigid3], truth: Sequence[Rigid3], offset: np.ndarray | None = None
+) -> PoseErrors:
+    """Errors of matched pose lists (same frames, same order)."""
+    R_off = body_rotation_offset(est, truth) if offset is None else offset
+    pos = np.array([np.linalg.norm(e.t - t.t) for e, t in zip(est, truth, strict=True)])
+    rot = np.degrees(
+        [rotation_angle((e.R @ R_off).T @ t.R) for e, t in zip(est, truth, strict=True)]
+    )
+    raw = np.degrees([rotation_angle(e.R.T @ t.R) for e, t in zip(est, truth, strict=True)])
+    rng = np.array([np.linalg.norm(t.t) for t in truth])
+    return PoseErrors(
+        position_m=pos,
+        rotation_deg=np.asarray(rot),
+        rotation_raw_deg=np.asarray(raw),
+        range_m=rng,
+        offset_deg=float(np.degrees(rotation_angle(R_off))),
+    )
+
+
+def relative_errors(
+    est: Sequence[Rigid3], truth: Sequence[Rigid3], offset: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Errors of the motion between consecutive poses (seed 000's inter-frame errors):
+    translation [m] and rotation [deg] of ``(T_k^-1 T_k+1)_est`` vs the truth, both expressed
+    in the (offset-aligned) body frame. Arrays of length N - 1."""
+    R_off = body_rotation_offset(est, truth) if offset is None else offset
+    off = Rigid3(R=R_off, t=np.zeros(3))
+    e_al = [e @ off for e in est]
+    dt, dr = [], []
+    for k in range(len(est) - 1):
+        de = e_al[k].inverse() @ e_al[k + 1]
+        dg = truth[k].inverse() @ truth[k + 1]
+        dt.append(np.linalg.norm(de.t - dg.t))
+        dr.append(np.degrees(np.linalg.norm(matrix_to_rotvec(de.R.T @ dg.R))))
+    return np.array(dt), np.array(dr)
+
+
+def band_mask(range_m: np.ndarray, band: tuple[float, float]) -> np.ndarray:
+    """Frames whose true range lies in ``(lo, hi]`` (``band = (hi, lo)``)."""
+    hi, lo = band
+    return (range_m <= hi + 1e-9) & (range_m > lo)
+
+
+def band_label(band: tuple[float, float]) -> str:
+    hi, lo = band
+    return f"{hi:g}-{lo:g} m" if lo > 0 else f"< {hi:g} m"
