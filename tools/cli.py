@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
@@ -119,6 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help=f"output folder (default {DEMO_OUT})",
     )
+    for register in EXTRA_COMMANDS:
+        register(sub)
     return parser
 
 
@@ -180,7 +181,7 @@ def run_frontend_on(sequence_path: Path, out: Path, config_path: Path | None) ->
     from satpose.datasets.config import load_config, to_plain
     from satpose.datasets.sequence import load_sequence
     from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
-    from satpose.tools.files import atomic_write, write_measurements, write_tum
+    from satpose.tools.files import atomic_write, prepare_out, write_measurements, write_tum
 
     seq = load_sequence(sequence_path)
     if seq.kind != "stereo":
@@ -188,7 +189,7 @@ def run_frontend_on(sequence_path: Path, out: Path, config_path: Path | None) ->
             f"{sequence_path}: the stereo frontend needs a stereo sequence (this one is {seq.kind})"
         )
     config = load_config(FrontendConfig, config_path) if config_path else FrontendConfig()
-    _prepare_out(out)
+    prepare_out(out)
     frontend = StereoFrontend(seq.calibration, config)
     results = []
     for frame in tqdm(
@@ -218,17 +219,6 @@ def run_frontend_on(sequence_path: Path, out: Path, config_path: Path | None) ->
     )
 
 
-def _prepare_out(out: Path) -> None:
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(
-            f"{out}: cannot create the output folder ({exc.strerror or exc})"
-        ) from None
-    if not os.access(out, os.W_OK):
-        raise ConfigError(f"{out}: output folder is not writable")
-
-
 def cmd_frontend(args: argparse.Namespace) -> None:
     run_frontend_on(args.sequence, args.out, args.config)
 
@@ -244,6 +234,10 @@ def cmd_demo(args: argparse.Namespace) -> None:
 
 COMMANDS = {"render": cmd_render, "frontend": cmd_frontend, "demo": cmd_demo}
 
+# More subcommands live in their own modules: each provides ``register(subparsers)``, which
+# adds its parser and sets ``handler=<function taking the parsed args>`` as a default.
+EXTRA_COMMANDS: list[Callable[[Any], None]] = []
+
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``satpose`` console script. Returns the exit status."""
@@ -253,8 +247,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.WARNING - 10 * min(args.verbose, 2),
         format="%(levelname)s %(name)s: %(message)s",
     )
+    handler = getattr(args, "handler", None) or COMMANDS[args.command]
     try:
-        COMMANDS[args.command](args)
+        handler(args)
     except SatposeError as exc:
         print(f"satpose {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -49,6 +49,18 @@ class ResultFileError(SatposeError):
     """A result file is missing, unreadable or malformed."""
 
 
+def prepare_out(out: Path) -> None:
+    """Create an output folder (and parents) or raise a one-line error if impossible."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ResultFileError(
+            f"{out}: cannot create the output folder ({exc.strerror or exc})"
+        ) from None
+    if not os.access(out, os.W_OK):
+        raise ResultFileError(f"{out}: output folder is not writable")
+
+
 def atomic_write(path: str | Path, write: Any) -> Path:
     """Call ``write(tmp_path)`` then rename the temporary file onto ``path``."""
     path = Path(path)
