@@ -290,9 +290,9 @@ class StereoFrontend:
         for cam in ("left", "right"):
             tracker = self.rings[cam]
             if tracker.track is not None:
-                o, why = tracker.follow(imgs[cam])
-                if o is not None:
-                    options[cam] = [(o, tracker.track.polarity)]
+                followed, why = tracker.follow(imgs[cam])
+                if followed is not None:
+                    options[cam] = [followed]
                     continue
                 failures.append(why or f"ring ({cam}): lost")
                 tracker.reset()
@@ -446,10 +446,15 @@ class StereoFrontend:
     # -- ORB --------------------------------------------------------------------------------------
 
     def _need_orb(self, circles: list[Circle3D], landmarks: list[LandmarkMeasurement]) -> bool:
+        """ORB runs at close range (the paper's s1), with few landmarks, or while the
+        landmarks in view are not yet mapped (it carries the target frame until they are)."""
         cfg = self.config.orb
         if circles and float(np.linalg.norm(circles[0].center)) < cfg.use_below_range_m:
             return True
-        return len(landmarks) < cfg.min_other_landmarks
+        if len(landmarks) < cfg.min_other_landmarks:
+            return True
+        mapped = sum(lm.track_id in self.target.map for lm in landmarks)
+        return self.target.anchor_id is not None and mapped < 2
 
     def _orb(
         self,

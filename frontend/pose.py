@@ -54,8 +54,8 @@ class PoseConfig:
             this many sightings, then frozen (a frozen map cannot drift).
         min_axis_distance_m: landmarks closer than this to the ring axis carry no usable
             azimuth and are not used as the eq. 9 landmark.
-        map_sigma_m: standard deviation added to every mapped landmark's covariance for the
-            map's own error [m].
+        map_sigma_m: standard deviation added to every mapped landmark's covariance (on top of
+            the map's own, propagated from triangulation and the mapping poses) [m].
         max_landmark_residual_sigma: landmarks whose residual exceeds this many standard
             deviations are dropped as mismatches and the fit repeated.
         min_landmarks_without_ring: landmarks needed for a pose when the ring is lost.
@@ -64,7 +64,7 @@ class PoseConfig:
     method: Literal["landmarks", "eq9"] = "landmarks"
     map_observations: int = 5
     min_axis_distance_m: float = 0.08
-    map_sigma_m: float = 0.003
+    map_sigma_m: float = 0.001
     max_landmark_residual_sigma: float = 5.0
     min_landmarks_without_ring: int = 3
 
@@ -74,6 +74,8 @@ class _MapPoint:
     kind: LandmarkKind
     position: np.ndarray  # target frame [m]
     count: int = 1
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))  # target frame
+    information: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
 
 @dataclass
@@ -102,7 +104,7 @@ class TargetFrameTracker:
             if ring is None:
                 return None, "pose: no ring and too few mapped landmarks"
             return None, "pose: no landmark with a 3-D point to fix the x axis"
-        self._update_map(pose.left_cam_from_target, pts)
+        self._update_map(pose, pts)
         return pose, None
 
     # -- bootstrap ---------------------------------------------------------------------------
@@ -268,16 +270,30 @@ class TargetFrameTracker:
 
     # -- map -----------------------------------------------------------------------------------
 
-    def _update_map(self, pose: Rigid3, pts: list[LandmarkMeasurement]) -> None:
-        target_from_cam = pose.inverse()
+    def _update_map(self, pose: PoseMeasurement, pts: list[LandmarkMeasurement]) -> None:
+        """Information-weighted mean of each landmark's target-frame position over its first
+        ``map_observations`` sightings, with its covariance (triangulation + the pose's)."""
+        T = pose.left_cam_from_target
+        target_from_cam = T.inverse()
+        Ct = pose.covariance[3:, 3:]  # translation, target axes (right perturbation)
+        Cr = pose.covariance[:3, :3]
         for lm in pts:
-            assert lm.point_m is not None
+            assert lm.point_m is not None and lm.covariance is not None
             p = target_from_cam.apply(lm.point_m)
+            # p = R^T (X - t): X's noise rotated into the target frame, plus the pose's error
+            # moving p by dt and by the rotation error about the target origin.
+            C = T.R.T @ lm.covariance @ T.R + Ct + skew(p) @ Cr @ skew(p).T
+            W = np.linalg.inv(C + np.eye(3) * 1e-12)
             entry = self.map.get(lm.track_id)
             if entry is None:
-                self.map[lm.track_id] = _MapPoint(kind=lm.kind, position=p)
+                self.map[lm.track_id] = _MapPoint(
+                    kind=lm.kind, position=p, covariance=C, information=W
+                )
             elif entry.count < self.config.map_observations:
-                entry.position = (entry.position * entry.count + p) / (entry.count + 1)
+                info = entry.information + W
+                cov = np.linalg.inv(info)
+                entry.position = cov @ (entry.information @ entry.position + W @ p)
+                entry.information, entry.covariance = info, cov
                 entry.count += 1
 
 
@@ -331,6 +347,9 @@ def _gauss_newton(
     P = np.array([world[lm.track_id].position for lm in mapped]).reshape(-1, 3)
     X = np.array([lm.point_m for lm in mapped]).reshape(-1, 3)
     C = np.array([lm.covariance for lm in mapped]).reshape(-1, 3, 3)
+    # The map's own uncertainty, rotated into the camera frame at the starting pose.
+    Cm = np.array([world[lm.track_id].covariance for lm in mapped]).reshape(-1, 3, 3)
+    C = C + np.einsum("ij,mjk,lk->mil", T.R, Cm, T.R)
     W = np.linalg.inv(C + np.eye(3) * map_sigma**2) if len(mapped) else np.zeros((0, 3, 3))
     info = np.zeros((6, 6))
     for _ in range(iterations):

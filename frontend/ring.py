@@ -225,9 +225,15 @@ class RingTracker:
             source=source,
         )
 
-    def follow(self, image: PreparedImage) -> tuple[EllipseObservation | None, str | None]:
-        """Measure the ring near where the track predicts it. ``(None, reason)`` if the track
-        is lost (the caller then acquires)."""
+    def follow(
+        self, image: PreparedImage
+    ) -> tuple[tuple[EllipseObservation, int] | None, str | None]:
+        """Measure the ring near where the track predicts it: ``((observation, polarity),
+        None)``, or ``(None, reason)`` if the track is lost (the caller then acquires).
+
+        When the detector runs, a larger concentric ring-like ellipse (of either polarity)
+        replaces the tracked one: the outer front edge is the largest of the rim's concentric
+        edges, and acquisition may have started on the inner one."""
         if self.track is None:
             return None, f"ring ({self.camera.value}): not tracking"
         if image.problem is not None:
@@ -241,17 +247,36 @@ class RingTracker:
         chosen, source = predicted, "tracked"
         self.track.age += 1
         if self.track.age % cfg.detect_every == 0:
-            found = self._plausible(image, self._roi(predicted, image.gray.shape), image_s, pol)
+            roi = self._roi(
+                Ellipse(
+                    cx=predicted.cx,
+                    cy=predicted.cy,
+                    a=predicted.a * 1.3,
+                    b=predicted.b * 1.3,
+                    theta=predicted.theta,
+                ),
+                image.gray.shape,
+            )
+            found = self._plausible(image, roi, image_s, None)
             pts = predicted.points(64)
             best = cfg.max_track_distance_px
-            for e, _ in found:
+            for e, p in found:
+                if p != pol:
+                    continue
                 d = float(np.mean(np.abs(_distance(pts, e))))
                 if d < best:
                     chosen, best, source = e, d, "detected"
+            for e, p in found:  # largest first
+                grows = 1.03 < (e.a + e.b) / (predicted.a + predicted.b) < 1.6
+                concentric = float(np.linalg.norm(e.center - predicted.center)) < 0.1 * predicted.a
+                if grows and concentric and abs(e.b / e.a - predicted.b / predicted.a) < 0.1:
+                    refined = self._refine(image_s, image.gray, e, p)
+                    if refined is not None:
+                        return (self._observation(refined, "detected"), p), None
         refined = self._refine(image_s, image.gray, chosen, pol)
         if refined is None:
             return None, f"ring ({self.camera.value}): weak edge support around the prediction"
-        return self._observation(refined, source), None
+        return (self._observation(refined, source), pol), None
 
     def acquire(
         self, image: PreparedImage, max_candidates: int = 4
