@@ -75,9 +75,10 @@ class StereoRingConfig:
             fraction is rejected (an inner edge); a larger one replaces the known radius (the
             outer edge, found late).
         radius_memory: frames over which the radius estimate is averaged.
-        normal_sigma_floor_deg, center_sigma_floor_m: standard deviations added to the fit's
-            normal and centre covariance for edge biases the fit cannot see (measured on the
-            rendered presets, docs/frontend.md).
+        normal_sigma_floor_deg, center_sigma_floor_m, disparity_sigma_floor_px: standard
+            deviations added to the fit's normal and centre (across the line of sight; along
+            it, the depth error of this disparity error) for edge biases the fit cannot see
+            (measured on the rendered presets, docs/frontend.md).
     """
 
     max_rms_px: float = 0.6
@@ -86,6 +87,7 @@ class StereoRingConfig:
     radius_memory: int = 20
     normal_sigma_floor_deg: float = 0.7
     center_sigma_floor_m: float = 0.003
+    disparity_sigma_floor_px: float = 0.12
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -368,7 +370,7 @@ class StereoFrontend:
                 1 - cfg.max_radius_change
             ):
                 continue  # smaller than the ring seen so far: an inner edge, not the outer one
-            out.append((rms, _inflate(circ, cfg)))
+            out.append((rms, _inflate(circ, cfg, self.rig)))
         if not out:
             raise GeometryFailure(
                 "the two ring ellipses do not make one circle consistent with the ring seen so far"
@@ -495,14 +497,22 @@ class StereoFrontend:
         return feats
 
 
-def _inflate(circ: Circle3D, cfg: StereoRingConfig) -> Circle3D:
-    """Add the model floors (``normal_sigma_floor_deg``, ``center_sigma_floor_m``) to the fit's
-    covariance: edge biases (shadows, the wall beside the rim) are not in the fit's noise."""
+def _inflate(circ: Circle3D, cfg: StereoRingConfig, rig: StereoRig) -> Circle3D:
+    """Add the model floors to the fit's covariance: edge biases (foil beside the rim, the
+    wall, shadows) are not in the fit's noise. Normal: ``normal_sigma_floor_deg``; centre:
+    ``center_sigma_floor_m`` across the line of sight, and along it the depth error of a
+    ``disparity_sigma_floor_px`` disparity error (``Z^2 s_d / (f b)``)."""
     C = circ.covariance.copy()
     s_n = math.radians(cfg.normal_sigma_floor_deg)
     u, v = tangent_basis(circ.normal)
     C[3:6, 3:6] += s_n**2 * (np.outer(u, u) + np.outer(v, v))
-    C[:3, :3] += np.eye(3) * cfg.center_sigma_floor_m**2
+    z = float(np.linalg.norm(circ.center))
+    f_b = float(rig.K_left[0, 0]) * float(np.linalg.norm(rig.right_from_left.t))
+    s_depth = max(cfg.center_sigma_floor_m, z * z * cfg.disparity_sigma_floor_px / f_b)
+    los = circ.center / z
+    C[:3, :3] += np.eye(3) * cfg.center_sigma_floor_m**2 + (
+        s_depth**2 - cfg.center_sigma_floor_m**2
+    ) * np.outer(los, los)
     return Circle3D(center=circ.center, normal=circ.normal, radius=circ.radius, covariance=C)
 
 
