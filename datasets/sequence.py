@@ -933,7 +933,7 @@ class SequenceWriter:
                 df.to_csv(self._tmp / "groundtruth.csv", index=False, float_format="%.15g")
             if self.target is not None:
                 _dump_yaml(target_to_yaml(self.target), self._tmp / "target.yaml")
-            _replace_dir(self._tmp, self.path, self.overwrite)
+            replace_dir(self._tmp, self.path, self.overwrite)
         except BaseException:
             self.abort()
             raise
@@ -941,8 +941,9 @@ class SequenceWriter:
         return self.path
 
 
-def _replace_dir(src: Path, dst: Path, overwrite: bool) -> None:
-    """Rename ``src`` to ``dst``; with ``overwrite`` swap out an existing ``dst`` first."""
+def replace_dir(src: Path, dst: Path, overwrite: bool) -> None:
+    """Rename the finished folder ``src`` to ``dst``; with ``overwrite`` swap out an existing
+    ``dst`` first (``src`` and ``dst`` must share a parent, so both renames are atomic)."""
     if dst.exists():
         if not overwrite:
             raise SequenceError(dst, None, "output folder already exists")
