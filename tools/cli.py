@@ -26,6 +26,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("satpose")
 
 DEMO_OUT = Path("runs/demo")
+DEMO_FRAMES = 40  # 7 m to 5 m
+DEMO_SPP = 8
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -106,10 +108,63 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     p = sub.add_parser(
+        "run",
+        help="frontend + backend over a sequence: trajectory, measurements, recording",
+        description="Measure every frame with the stereo frontend, estimate the trajectory "
+        "with the chosen estimator and write the run folder (trajectory.csv/.tum, "
+        "measurements.parquet, timings.csv, config.yaml, run.rrd; docs/pipeline.md).",
+    )
+    p.add_argument("sequence", type=Path, metavar="SEQUENCE", help="sequence folder")
+    p.add_argument(
+        "--estimator",
+        choices=["online", "offline", "kalman"],
+        default="online",
+        help="online (iSAM2, default), offline (batch smoother) or kalman (baseline)",
+    )
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="run folder")
+    p.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE",
+        help="YAML/TOML pipeline config (frontend:, backend:, recording:, compare:)",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing run folder (once the new run is complete)",
+    )
+    p.add_argument("--spawn", action="store_true", help="also stream to a Rerun viewer")
+
+    p = sub.add_parser(
+        "eval",
+        help="metrics of a run against the sequence's ground truth",
+        description="Compare a run's trajectories with groundtruth.csv: errors in seed 000's "
+        "terms (per range band), ATE/RPE as evo defines them, NEES. Prints a table, writes "
+        "metrics.json and metrics.csv into the run folder.",
+    )
+    p.add_argument("sequence", type=Path, metavar="SEQUENCE", help="sequence folder")
+    p.add_argument("run", type=Path, metavar="DIR", help="run folder (satpose run --out)")
+
+    p = sub.add_parser(
+        "report",
+        help="PNG plots of a run",
+        description="Plot range, rotation angle, errors with 3-sigma bounds, spin rate and "
+        "timing of a run folder (PNG files in the folder).",
+    )
+    p.add_argument("run", type=Path, metavar="DIR", help="run folder (satpose run --out)")
+    p.add_argument(
+        "--sequence",
+        type=Path,
+        metavar="SEQUENCE",
+        help="sequence with ground truth (default: the one in DIR/run.yaml)",
+    )
+
+    p = sub.add_parser(
         "demo",
         help="the main job on the built-in default scenario",
-        description="Render a small paper-docking sequence (24 frames, 512x384) "
-        "and report where it went.",
+        description="Render a short paper-docking sequence (40 frames, 7 m to 5 m, 1024x768, "
+        "8 spp), run the frontend and the online estimator on it, print the metric table against "
+        "the truth and write the plots and the Rerun recording.",
     )
     p.add_argument(
         "--out",
@@ -223,16 +278,88 @@ def cmd_frontend(args: argparse.Namespace) -> None:
     run_frontend_on(args.sequence, args.out, args.config)
 
 
+def cmd_run(args: argparse.Namespace) -> None:
+    from tqdm import tqdm
+
+    from satpose.datasets.config import load_config
+    from satpose.tools.pipeline import PipelineConfig, run_pipeline
+
+    config = load_config(PipelineConfig, args.config) if args.config else PipelineConfig()
+    bar = tqdm(
+        desc=f"run {args.estimator}", unit="frame", file=sys.stderr, dynamic_ncols=True, delay=0.5
+    )
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        result = run_pipeline(
+            args.sequence,
+            args.estimator,
+            args.out,
+            config,
+            overwrite=args.overwrite,
+            spawn=args.spawn,
+            progress=progress,
+        )
+    finally:
+        bar.close()
+    n = len(result.measurements)
+    poses = sum(m.pose is not None for m in result.measurements)
+    print(
+        f"{n} frames ({poses} with a frontend pose); {args.estimator} estimate of "
+        f"{len(result.estimate)} frames in {args.out}/trajectory.csv; recording "
+        f"{args.out}/run.rrd (open: rerun {args.out}/run.rrd)"
+    )
+
+
+def cmd_eval(args: argparse.Namespace) -> None:
+    from satpose.tools.evaluate import evaluate_run, table, write_metrics
+
+    results = evaluate_run(args.sequence, args.run)
+    print(table(results))
+    write_metrics(results, args.run, args.sequence)
+    print(f"wrote {args.run}/metrics.json, metrics.csv and groundtruth.tum")
+
+
+def cmd_report(args: argparse.Namespace) -> None:
+    from satpose.tools.report import make_report
+
+    for path in make_report(args.run, args.sequence):
+        print(f"wrote {path}")
+
+
 def cmd_demo(args: argparse.Namespace) -> None:
     from satpose.datasets.scenarios import preset, scaled
+    from satpose.tools.evaluate import evaluate_run, table, write_metrics
+    from satpose.tools.pipeline import run_pipeline
+    from satpose.tools.report import make_report
 
-    scenario = scaled(preset("paper-docking"), frames=24, size=(512, 384), spp=8)
-    out = args.out / "paper-docking"
-    _render(scenario, out, overwrite=True)
-    print(f"open {out}/left/ to look at the images; {out}/groundtruth.csv holds the true poses")
+    scenario = scaled(preset("paper-docking"), frames=DEMO_FRAMES, spp=DEMO_SPP)
+    seq = args.out / "paper-docking"
+    run = args.out / "run-online"
+    _render(scenario, seq, overwrite=True)
+    print(f"running frontend + iSAM2 backend on {seq} ...", flush=True)
+    run_pipeline(seq, "online", run, overwrite=True)
+    results = evaluate_run(seq, run)
+    write_metrics(results, run, seq)
+    print(table(results))
+    plots = make_report(run)
+    print(
+        f"\nsequence: {seq}\nrun: {run} (trajectory.csv, metrics.json, "
+        f"{len(plots)} PNG plots)\nrecording: rerun {run}/run.rrd"
+    )
 
 
-COMMANDS = {"render": cmd_render, "frontend": cmd_frontend, "demo": cmd_demo}
+COMMANDS = {
+    "render": cmd_render,
+    "frontend": cmd_frontend,
+    "run": cmd_run,
+    "eval": cmd_eval,
+    "report": cmd_report,
+    "demo": cmd_demo,
+}
 
 # More subcommands live in their own modules: each provides ``register(subparsers)``, which
 # adds its parser and sets ``handler=<function taking the parsed args>`` as a default.

@@ -97,8 +97,9 @@ def _row(m: FrameMeasurements, item: str, **kw: Any) -> dict[str, Any]:
     return base
 
 
-def measurements_to_frame(items: Iterable[FrameMeasurements]) -> pd.DataFrame:
-    """The long-format table of a sequence of frame measurements."""
+def measurements_to_frame(items: Iterable[FrameMeasurements], timings: bool = True) -> pd.DataFrame:
+    """The long-format table of a sequence of frame measurements (``timings``: include the
+    per-stage wall times, the only values that differ between identical runs)."""
     rows: list[dict[str, Any]] = []
     for m in items:
         rows.append(_row(m, "frame"))
@@ -152,7 +153,7 @@ def measurements_to_frame(items: Iterable[FrameMeasurements]) -> pd.DataFrame:
             )
         for f in m.failures:
             rows.append(_row(m, "failure", text=f))
-        for stage, ms in m.timings_ms.items():
+        for stage, ms in m.timings_ms.items() if timings else ():
             rows.append(_row(m, "timing", label=stage, values=[float(ms)]))
     columns = [
         "frame",
@@ -173,9 +174,11 @@ def measurements_to_frame(items: Iterable[FrameMeasurements]) -> pd.DataFrame:
     )
 
 
-def write_measurements(items: Sequence[FrameMeasurements], path: str | Path) -> Path:
-    """Write measurements.parquet atomically."""
-    df = measurements_to_frame(items)
+def write_measurements(
+    items: Sequence[FrameMeasurements], path: str | Path, timings: bool = True
+) -> Path:
+    """Write measurements.parquet atomically (see `measurements_to_frame` for ``timings``)."""
+    df = measurements_to_frame(items, timings)
     return atomic_write(path, lambda tmp: df.to_parquet(tmp, index=False))
 
 

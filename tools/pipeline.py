@@ -1,0 +1,426 @@
+"""`satpose run`: frontend + backend over a sequence, result files and the Rerun recording.
+
+Outputs in the run folder. The folder is built next to its final place and renamed into
+place when complete, so a failed or interrupted run leaves nothing (and an existing run folder,
+replaced only with ``overwrite``, stays as it was):
+
+- ``trajectory.csv``: the chosen estimator's trajectory (online and kalman: each frame's
+  estimate right after that frame, i.e. causal; offline: smoothed), see `TRAJECTORY_COLUMNS`.
+- ``trajectory.tum``: the same poses (``left_cam_from_target``) in TUM format.
+- ``trajectory_smoothed.csv/.tum`` (online only): iSAM2's smoothed estimate at the end.
+- ``estimate.npz``: the same estimate with full 6x6 covariances (``eval`` uses them for NEES).
+- ``frontend_pose.tum``: the per-frame (unsmoothed) poses of the frontend.
+- ``measurements.parquet``: the frontend's measurements (tools.files).
+- ``timings.csv``: per frame and stage [ms] (wall clock: the only output that varies run to run,
+  with run.rrd).
+- ``config.yaml``: the resolved configuration; ``run.yaml``: provenance (sequence, estimator).
+- ``run.rrd``: the Rerun recording (tools.recording).
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import sys
+import time
+import uuid
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from satpose.backend import BackendConfig, BackendError, Estimate, make_estimator
+from satpose.datasets.config import to_plain
+from satpose.datasets.errors import SatposeError
+from satpose.datasets.geometry import Rigid3
+from satpose.datasets.sequence import Sequence, load_sequence, replace_dir
+from satpose.frontend.measurements import FrameMeasurements
+from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
+from satpose.tools.files import atomic_write, write_measurements, write_tum
+from satpose.tools.recording import RecordingConfig, RunRecorder
+
+log = logging.getLogger(__name__)
+
+EstimatorName = Literal["online", "offline", "kalman"]
+
+TRAJECTORY_COLUMNS = [
+    "frame",
+    "t_s",
+    "tx",
+    "ty",
+    "tz",
+    "qx",
+    "qy",
+    "qz",
+    "qw",
+    "wx",
+    "wy",
+    "wz",
+    "vx",
+    "vy",
+    "vz",
+    "sigma_rx",
+    "sigma_ry",
+    "sigma_rz",
+    "sigma_tx",
+    "sigma_ty",
+    "sigma_tz",
+    "sigma_wx",
+    "sigma_wy",
+    "sigma_wz",
+    "sigma_vx",
+    "sigma_vy",
+    "sigma_vz",
+]
+"""trajectory.csv: pose ``left_cam_from_target`` (t [m], quaternion xyzw); ``w`` the angular
+velocity in the target frame [rad/s] and ``v`` the target-origin velocity in the left camera
+frame [m/s] (groundtruth.csv's conventions); 1-sigma of the rotation about the target axes
+[rad], of the position along the camera axes [m], of ``w`` (target axes) and ``v`` (camera
+axes)."""
+
+
+class RunError(SatposeError):
+    """A run cannot be made with these inputs."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class PipelineConfig:
+    """Everything `satpose run` does (YAML/TOML with ``--config``; unknown keys refused).
+
+    Attributes:
+        frontend: the stereo frontend.
+        backend: the estimators.
+        recording: what run.rrd holds.
+        compare: also run the other estimators on the same measurements, for the recording
+            and the report (cheap next to the frontend).
+    """
+
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+    compare: bool = True
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """What a run produced (also on disk)."""
+
+    out: Path
+    estimator: str
+    estimate: Estimate
+    measurements: list[FrameMeasurements]
+    others: dict[str, Estimate]
+
+
+def _version() -> str:
+    try:
+        return metadata.version("satpose")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def estimate_frame(est: Estimate) -> pd.DataFrame:
+    """trajectory.csv's table of an estimate (see `TRAJECTORY_COLUMNS`)."""
+    n = len(est)
+    R = np.stack([T.R for T in est.left_cam_from_target]) if n else np.zeros((0, 3, 3))
+    t = np.array([T.t for T in est.left_cam_from_target]).reshape(n, 3)
+    q = np.array([T.quat_xyzw for T in est.left_cam_from_target]).reshape(n, 4)
+    w = est.angular_velocity
+    v = est.origin_velocity_cam()
+    C = est.pose_covariance
+    Ct_cam = np.einsum("nij,njk,nlk->nil", R, C[:, 3:, 3:], R)
+    Cv_cam = np.einsum("nij,njk,nlk->nil", R, est.twist_covariance[:, 3:, 3:], R)
+    sig = lambda M: np.sqrt(np.clip(np.diagonal(M, axis1=1, axis2=2), 0, None))  # noqa: E731
+    data = np.column_stack(
+        [
+            est.frame,
+            est.t_s,
+            t,
+            q,
+            w,
+            v,
+            sig(C[:, :3, :3]),
+            sig(Ct_cam),
+            sig(est.twist_covariance[:, :3, :3]),
+            sig(Cv_cam),
+        ]
+    )
+    df = pd.DataFrame(data, columns=TRAJECTORY_COLUMNS)
+    return df.astype({"frame": "int64"})
+
+
+def write_estimate(est: Estimate, out: Path, stem: str) -> None:
+    """``<stem>.csv``, ``<stem>.tum`` and (for ``trajectory``) ``estimate.npz``."""
+    df = estimate_frame(est)
+    atomic_write(out / f"{stem}.csv", lambda tmp: df.to_csv(tmp, index=False, float_format="%.10g"))
+    write_tum(est.t_s, est.left_cam_from_target, out / f"{stem}.tum")
+
+
+def write_estimate_npz(est: Estimate, path: Path) -> None:
+    """All arrays of an estimate, covariances included (numpy ``.npz``, byte-identical for
+    identical estimates: the archive's member times are fixed, unlike `numpy.savez`'s)."""
+    arrays = {
+        "frame": est.frame,
+        "t_s": est.t_s,
+        "rotation": np.stack([T.R for T in est.left_cam_from_target]),
+        "translation": np.array([T.t for T in est.left_cam_from_target]),
+        "twist": est.twist,
+        "pose_covariance": est.pose_covariance,
+        "twist_covariance": est.twist_covariance,
+    }
+
+    def write(tmp: Path) -> None:
+        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            for name, value in arrays.items():
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                info.compress_type = zipfile.ZIP_DEFLATED
+                with zf.open(info, "w") as fh:
+                    np.lib.format.write_array(fh, np.asarray(value), allow_pickle=False)
+
+    atomic_write(path, write)
+
+
+def read_estimate_npz(path: Path) -> Estimate:
+    """Read back `write_estimate_npz`."""
+    if not path.is_file():
+        raise RunError(f"{path}: estimate file is missing (run `satpose run` first)")
+    try:
+        z = np.load(path)
+        poses = tuple(
+            Rigid3(R=R, t=t) for R, t in zip(z["rotation"], z["translation"], strict=True)
+        )
+        return Estimate(
+            frame=z["frame"],
+            t_s=z["t_s"],
+            left_cam_from_target=poses,
+            twist=z["twist"],
+            pose_covariance=z["pose_covariance"],
+            twist_covariance=z["twist_covariance"],
+        )
+    except (OSError, KeyError, ValueError) as exc:
+        raise RunError(f"{path}: not a readable estimate ({exc})") from None
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    """Refuse an output folder we must not replace (before any work is done)."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise RunError(f"{out}: exists and is not a folder")
+    if not any(out.iterdir()):
+        return
+    if not (out / "run.yaml").is_file():
+        raise RunError(f"{out}: folder is not empty and not a run folder (no run.yaml)")
+    if not overwrite:
+        raise RunError(f"{out}: a run folder already exists (choose another folder or --overwrite)")
+
+
+def _make_stage(out: Path) -> Path:
+    """An empty folder next to ``out`` to build the run in."""
+    stage = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        stage.mkdir()
+    except OSError as exc:
+        raise RunError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
+    return stage
+
+
+def run_pipeline(
+    sequence_path: Path,
+    estimator: EstimatorName,
+    out: Path,
+    config: PipelineConfig | None = None,
+    *,
+    overwrite: bool = False,
+    spawn: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> RunResult:
+    """Run frontend and backend over a sequence and write the run folder (see module doc).
+
+    Args:
+        overwrite: replace an existing run folder (one holding run.yaml) once the new one is
+            complete; other non-empty folders are always refused.
+        progress: called with ``(frames done, frames total)`` after each frame.
+    """
+    cfg = config or PipelineConfig()
+    if estimator not in ("online", "offline", "kalman"):
+        raise RunError(f"unknown estimator {estimator!r}; choose online, offline or kalman")
+    seq = load_sequence(sequence_path)
+    if seq.kind != "stereo":
+        raise RunError(
+            f"{sequence_path}: the stereo pipeline needs a stereo sequence (this one is {seq.kind})"
+        )
+    out = Path(out)
+    _check_out(out, overwrite)
+    stage = _make_stage(out)
+    try:
+        result = _run(seq, Path(sequence_path), estimator, stage, cfg, spawn, progress)
+        replace_dir(stage, out, overwrite=True)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    return RunResult(
+        out=out,
+        estimator=estimator,
+        estimate=result.estimate,
+        measurements=result.measurements,
+        others=result.others,
+    )
+
+
+def _run(
+    seq: Sequence,
+    sequence_path: Path,
+    estimator: EstimatorName,
+    out: Path,
+    cfg: PipelineConfig,
+    spawn: bool,
+    progress: Callable[[int, int], None] | None,
+) -> RunResult:
+    """The run itself, writing into the (staging) folder ``out``."""
+    names = ["online", "offline", "kalman"] if cfg.compare else [estimator]
+    estimators = {name: make_estimator(name, seq.calibration, cfg.backend) for name in names}
+    frontend = StereoFrontend(seq.calibration, cfg.frontend)
+    recorder = RunRecorder(out / "run.rrd", seq.calibration, seq.target, cfg.recording, spawn=spawn)
+    results: list[FrameMeasurements] = []
+    timing_rows: list[dict[str, Any]] = []
+    try:
+        for k, frame in enumerate(seq):
+            t0 = time.perf_counter()
+            m = frontend.process_frame(frame)
+            t1 = time.perf_counter()
+            row: dict[str, Any] = {
+                "frame": frame.index,
+                "t_s": frame.t_s,
+                **{f"frontend_{s}": v for s, v in m.timings_ms.items()},
+                "frontend_total": (t1 - t0) * 1000.0,
+            }
+            for name, est in estimators.items():
+                t2 = time.perf_counter()
+                est.add(m)
+                row[f"backend_{name}"] = (time.perf_counter() - t2) * 1000.0
+            timing_rows.append(row)
+            results.append(m)
+            _record(recorder, seq, k, frame, m, estimators, row)
+            if progress is not None:
+                progress(k + 1, len(seq))
+        finals = {}
+        for name, est in estimators.items():
+            try:
+                finals[name] = est.estimate()
+            except BackendError as exc:
+                if name == estimator:
+                    raise RunError(f"{sequence_path}: no estimate: {exc}") from None
+                log.warning("%s estimator: %s", name, exc)
+        main = finals[estimator]
+        causal = estimators[estimator].filtered() if estimator != "offline" else main
+        for name, label in (("offline", "smoothed"), ("online", "isam2_smoothed")):
+            if name in finals:
+                e = finals[name]
+                recorder.log_final(
+                    label,
+                    list(e.frame),
+                    list(e.left_cam_from_target),
+                    [_truth_pose(seq, int(i)) for i in e.frame],
+                    list(e.spin_rate_deg_per_frame(1.0 / seq.rate_hz)),
+                )
+    finally:
+        recorder.close()
+    write_estimate(causal, out, "trajectory")
+    write_estimate_npz(causal, out / "estimate.npz")
+    if estimator == "online":
+        write_estimate(main, out, "trajectory_smoothed")
+        write_estimate_npz(main, out / "estimate_smoothed.npz")
+    for name, e in finals.items():
+        if name != estimator:
+            write_estimate_npz(e, out / f"estimate_{name}.npz")
+    with_pose = [m for m in results if m.pose is not None]
+    write_tum(
+        [m.t_s for m in with_pose],
+        [m.pose.left_cam_from_target for m in with_pose],
+        out / "frontend_pose.tum",
+    )
+    write_measurements(results, out / "measurements.parquet", timings=False)
+    tdf = pd.DataFrame(timing_rows).fillna(0.0)
+    atomic_write(out / "timings.csv", lambda tmp: tdf.to_csv(tmp, index=False, float_format="%.3f"))
+    text = yaml.safe_dump(to_plain(cfg), sort_keys=False)
+    atomic_write(out / "config.yaml", lambda tmp: Path(tmp).write_text(text))
+    prov = {
+        "satpose": _version(),
+        "sequence": str(sequence_path.resolve()),
+        "estimator": estimator,
+        "frames": len(seq),
+        "frames_with_pose": len(with_pose),
+        "command": " ".join(sys.argv),
+    }
+    atomic_write(
+        out / "run.yaml", lambda tmp: Path(tmp).write_text(yaml.safe_dump(prov, sort_keys=False))
+    )
+    others = {n: e for n, e in finals.items() if n != estimator}
+    return RunResult(
+        out=out, estimator=estimator, estimate=causal, measurements=results, others=others
+    )
+
+
+def _truth_pose(seq: Sequence, frame_index: int) -> Rigid3 | None:
+    if seq.truth is None:
+        return None
+    try:
+        return seq.truth.pose(seq.truth.row_of_frame(frame_index))
+    except KeyError:
+        return None
+
+
+def _record(
+    recorder: RunRecorder,
+    seq: Sequence,
+    k: int,
+    frame: Any,
+    m: FrameMeasurements,
+    estimators: dict[str, Any],
+    timings: dict[str, Any],
+) -> None:
+    """Log one frame: images, detections, the causal estimates so far."""
+    poses: dict[str, Rigid3 | None] = {
+        "per_frame": m.pose.left_cam_from_target if m.pose is not None else None
+    }
+    cov = None
+    spin: dict[str, float] = {}
+    for name, key in (("kalman", "kalman"), ("online", "isam2")):
+        est = estimators.get(name)
+        if est is None:
+            continue
+        try:
+            f = est.filtered()
+        except BackendError:
+            continue
+        if len(f) and int(f.frame[-1]) == frame.index:
+            poses[key] = f.left_cam_from_target[-1]
+            spin[key] = float(f.spin_rate_deg_per_frame(1.0 / seq.rate_hz)[-1])
+            if name == "online":
+                cov = f.pose_covariance[-1]
+    truth = _truth_pose(seq, frame.index)
+    if truth is not None and seq.truth is not None and seq.truth.angular_velocity is not None:
+        row = seq.truth.row_of_frame(frame.index)
+        spin["truth"] = float(
+            np.degrees(np.linalg.norm(seq.truth.angular_velocity[row])) / seq.rate_hz
+        )
+    images = {}
+    if recorder.config.images:
+        try:
+            images = {"left": frame.left(), "right": frame.right()}
+        except SatposeError:
+            images = {}
+    stage_ms = {
+        k2.removeprefix("frontend_"): v
+        for k2, v in timings.items()
+        if k2.startswith(("frontend_", "backend_")) and k2 != "frontend_total"
+    }
+    recorder.log_frame(frame.index, images, m, poses, cov, truth, spin, stage_ms)

@@ -1,0 +1,372 @@
+"""Rerun recording of a run: images with detections, the 3-D scene, trajectories, time series.
+
+The pipeline calls `RunRecorder` as a hook; nothing in frontend/ or backend/ imports rerun.
+One explicit `rr.RecordingStream` (no global recording), entity paths defined here once,
+OpenCV view coordinates (x right, y down, z forward) for the world = left camera frame.
+
+Layout (`blueprint`): left and right images with the detected ring ellipses, landmarks (by
+kind, labelled with their track ids) and the estimated ring reprojected; the 3-D scene with
+both cameras, the estimated and true target (ring, axes, landmark map), trajectories
+(truth, per-frame, kalman, iSAM2 filtered, smoothed) and the position covariance ellipsoid;
+time series of errors, spin rate and stage timings. Timeline: ``frame``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from satpose.datasets.geometry import Rigid3, matrix_to_quat_xyzw
+from satpose.datasets.sequence import Calibration, TargetGeometry
+from satpose.frontend.conics import Ellipse, circle_to_conic, conic_to_ellipse
+from satpose.frontend.measurements import FrameMeasurements, LandmarkKind
+
+WORLD = "world"
+CAMERA = {"left": "world/camera/left", "right": "world/camera/right"}
+TARGET_ESTIMATE = "world/target/estimate"
+TARGET_TRUTH = "world/target/truth"
+TRAJECTORY = "world/trajectory"
+COVARIANCE = "world/covariance"
+PLOTS = "plots"
+FAILURES = "log/failures"
+
+TRAJECTORIES = ("truth", "per_frame", "kalman", "isam2", "smoothed", "isam2_smoothed")
+"""Trajectory names: truth, the frontend's per-frame poses, the Kalman filter and iSAM2 as
+they run (causal), the offline smoother and iSAM2's final smoothed estimate."""
+COLORS = {
+    "truth": (80, 220, 80),
+    "per_frame": (200, 200, 200),
+    "kalman": (240, 160, 40),
+    "isam2": (60, 160, 255),
+    "smoothed": (230, 60, 200),
+    "isam2_smoothed": (140, 90, 255),
+}
+KIND_COLORS = {
+    LandmarkKind.CORNER: (255, 200, 0),
+    LandmarkKind.COMPONENT: (0, 220, 255),
+    LandmarkKind.ORB: (255, 80, 80),
+}
+
+
+@dataclass(frozen=True, kw_only=True)
+class RecordingConfig:
+    """What goes into run.rrd.
+
+    Attributes:
+        images: log the camera images (JPEG) every frame.
+        jpeg_quality: JPEG quality of the logged images.
+        orb_points: log ORB landmarks too (hundreds per frame at close range).
+    """
+
+    images: bool = True
+    jpeg_quality: int = 80
+    orb_points: bool = True
+
+
+def blueprint() -> rrb.Blueprint:
+    """The default layout: images left, 3-D scene centre, time series right."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial2DView(origin=CAMERA["left"], name="left camera"),
+                rrb.Spatial2DView(origin=CAMERA["right"], name="right camera"),
+            ),
+            rrb.Spatial3DView(origin=WORLD, name="scene (left camera frame)"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin=f"{PLOTS}/error", name="errors vs truth"),
+                rrb.TimeSeriesView(origin=f"{PLOTS}/spin", name="spin rate [deg/frame]"),
+                rrb.TimeSeriesView(origin=f"{PLOTS}/timing_ms", name="stage time [ms]"),
+            ),
+            column_shares=[1, 2, 1],
+        ),
+        collapse_panels=True,
+    )
+
+
+def _circle_points(T: Rigid3, radius: float, n: int = 96) -> np.ndarray:
+    a = np.linspace(0, 2 * np.pi, n)
+    return T.apply(np.c_[radius * np.cos(a), radius * np.sin(a), np.zeros(n)])
+
+
+def _ellipse_strip(e: Ellipse, n: int = 96) -> np.ndarray:
+    p = e.points(n)
+    return np.vstack([p, p[:1]])
+
+
+class RunRecorder:
+    """Writes run.rrd while the pipeline runs (the pipeline calls `log_frame` per frame and
+    `log_final` once), then `close`."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        calibration: Calibration,
+        target: TargetGeometry | None = None,
+        config: RecordingConfig | None = None,
+        spawn: bool = False,
+    ) -> None:
+        self.config = config or RecordingConfig()
+        self.calibration = calibration
+        self.target = target
+        self.rec = rr.RecordingStream(application_id="satpose", recording_id=None)
+        self.rec.save(str(path))
+        if spawn:
+            self.rec.spawn(connect=True)
+        self.rec.send_blueprint(blueprint())
+        self._tracks: dict[str, list[np.ndarray]] = {name: [] for name in TRAJECTORIES}
+        self._radius: float | None = None
+        self._static()
+
+    def _static(self) -> None:
+        rec = self.rec
+        rec.log(WORLD, rr.ViewCoordinates.RDF, static=True)
+        for cam in ("left", "right") if self.calibration.is_stereo else ("left",):
+            c = self.calibration.camera(cam)
+            T = Rigid3.identity() if cam == "left" else self.calibration.right_from_left.inverse()
+            rec.log(
+                CAMERA[cam], rr.Transform3D(translation=T.t, quaternion=T.quat_xyzw), static=True
+            )
+            rec.log(
+                CAMERA[cam],
+                rr.Pinhole(
+                    image_from_camera=c.K,
+                    resolution=[c.width, c.height],
+                    camera_xyz=rr.ViewCoordinates.RDF,
+                    image_plane_distance=0.5,
+                ),
+                static=True,
+            )
+        for name in TRAJECTORIES:
+            rec.log(
+                f"{PLOTS}/error/position_cm/{name}",
+                rr.SeriesLines(colors=[COLORS[name]], names=name),
+                static=True,
+            )
+            rec.log(
+                f"{PLOTS}/error/normal_deg/{name}",
+                rr.SeriesLines(colors=[COLORS[name]], names=name),
+                static=True,
+            )
+
+    # -- per frame --------------------------------------------------------------------------
+
+    def log_frame(
+        self,
+        index: int,
+        images: Mapping[str, np.ndarray],
+        m: FrameMeasurements,
+        estimates: Mapping[str, Rigid3 | None],
+        covariance: np.ndarray | None = None,
+        truth: Rigid3 | None = None,
+        spin_deg_per_frame: Mapping[str, float] | None = None,
+        timings_ms: Mapping[str, float] | None = None,
+    ) -> None:
+        """One frame: images and detections, poses so far (``estimates`` keyed by trajectory
+        name: ``per_frame``, ``kalman``, ``isam2``), the main estimate's 6x6 covariance, the
+        truth, spin rates and stage timings."""
+        rec = self.rec
+        rec.set_time("frame", sequence=index)
+        rec.set_time("time", duration=float(m.t_s))
+        if self.config.images:
+            for cam, img in images.items():
+                color: Literal["BGR", "L"] = "BGR" if img.ndim == 3 else "L"
+                img8 = img if img.dtype == np.uint8 else (img // 257).astype(np.uint8)
+                rec.log(
+                    f"{CAMERA[cam]}/image",
+                    rr.Image(img8, color_model=color).compress(
+                        jpeg_quality=self.config.jpeg_quality
+                    ),
+                )
+        self._log_detections(m)
+        if m.ring is not None:
+            self._radius = m.ring.radius_m
+        main = next(
+            (
+                T
+                for T in (
+                    estimates.get("isam2"),
+                    estimates.get("kalman"),
+                    estimates.get("per_frame"),
+                )
+                if T is not None
+            ),
+            None,
+        )
+        for name, T in estimates.items():
+            if T is not None:
+                self._tracks[name].append(T.t)
+        if truth is not None:
+            self._tracks["truth"].append(truth.t)
+            self._log_target(TARGET_TRUTH, truth, COLORS["truth"], truth_model=True)
+        if main is not None:
+            self._log_target(TARGET_ESTIMATE, main, COLORS["isam2"], truth_model=False)
+            self._log_reprojected_ring(main)
+            if covariance is not None:
+                self._log_covariance(main, covariance)
+        for name, pts in self._tracks.items():
+            if len(pts) >= 2:
+                rec.log(
+                    f"{TRAJECTORY}/{name}", rr.LineStrips3D([np.array(pts)], colors=[COLORS[name]])
+                )
+        if truth is not None:
+            for name, T in estimates.items():
+                if T is None:
+                    continue
+                rec.log(
+                    f"{PLOTS}/error/position_cm/{name}",
+                    rr.Scalars(100.0 * float(np.linalg.norm(T.t - truth.t))),
+                )
+                # The ring normal (target z) does not depend on the estimator's choice of x.
+                cos = float(np.clip(T.R[:, 2] @ truth.R[:, 2], -1.0, 1.0))
+                rec.log(
+                    f"{PLOTS}/error/normal_deg/{name}",
+                    rr.Scalars(float(np.degrees(np.arccos(cos)))),
+                )
+        for name, rate in (spin_deg_per_frame or {}).items():
+            rec.log(f"{PLOTS}/spin/{name}", rr.Scalars(float(rate)))
+        for stage, ms in (timings_ms or {}).items():
+            rec.log(f"{PLOTS}/timing_ms/{stage}", rr.Scalars(float(ms)))
+        if m.failures:
+            rec.log(FAILURES, rr.TextLog("; ".join(m.failures), level=rr.TextLogLevel.WARN))
+
+    def _log_detections(self, m: FrameMeasurements) -> None:
+        rec = self.rec
+        for cam in CAMERA:
+            ellipses = [e for e in (m.ring.ellipses if m.ring else ()) if e.camera.value == cam]
+            rec.log(
+                f"{CAMERA[cam]}/ring",
+                rr.LineStrips2D(
+                    [
+                        _ellipse_strip(Ellipse.from_params([*e.center_px, *e.axes_px, e.angle_rad]))
+                        for e in ellipses
+                    ],
+                    colors=[(0, 255, 0)],
+                    radii=rr.Radius.ui_points(1.5),
+                ),
+            )
+            for kind in LandmarkKind:
+                if kind == LandmarkKind.ORB and not self.config.orb_points:
+                    continue
+                pts, labels = [], []
+                for lm in m.landmarks:
+                    if lm.kind != kind:
+                        continue
+                    px = lm.left_px if cam == "left" else lm.right_px
+                    if px is not None:
+                        pts.append(px)
+                        labels.append(str(lm.track_id))
+                rec.log(
+                    f"{CAMERA[cam]}/landmarks/{kind.value}",
+                    rr.Points2D(
+                        np.array(pts).reshape(-1, 2),
+                        colors=[KIND_COLORS[kind]],
+                        radii=rr.Radius.ui_points(3.0),
+                        labels=labels if kind != LandmarkKind.ORB else None,
+                    ),
+                )
+
+    def _log_reprojected_ring(self, T: Rigid3) -> None:
+        if self._radius is None:
+            return
+        for cam in ("left", "right") if self.calibration.is_stereo else ("left",):
+            c = self.calibration.camera(cam)
+            cam_from_target = T if cam == "left" else self.calibration.right_from_left @ T
+            if cam_from_target.t[2] <= 0:
+                continue
+            try:
+                e = conic_to_ellipse(circle_to_conic(c.K, cam_from_target, self._radius))
+            except (ValueError, np.linalg.LinAlgError):
+                continue
+            self.rec.log(
+                f"{CAMERA[cam]}/ring_estimate",
+                rr.LineStrips2D(
+                    [_ellipse_strip(e)], colors=[(60, 160, 255)], radii=rr.Radius.ui_points(1.0)
+                ),
+            )
+
+    def _log_target(
+        self, entity: str, T: Rigid3, color: tuple[int, int, int], truth_model: bool
+    ) -> None:
+        rec = self.rec
+        rec.log(entity, rr.Transform3D(translation=T.t, quaternion=T.quat_xyzw))
+        radius = self._radius or 0.3
+        if truth_model and self.target is not None and self.target.ring is not None:
+            radius = self.target.ring.radius_m
+        a = np.linspace(0, 2 * np.pi, 96)
+        strips = [np.c_[radius * np.cos(a), radius * np.sin(a), np.zeros(a.size)]]
+        if truth_model and self.target is not None and self.target.panel_corners is not None:
+            strips.append(np.vstack([self.target.panel_corners, self.target.panel_corners[:1]]))
+        rec.log(f"{entity}/model", rr.LineStrips3D(strips, colors=[color]))
+        s = 0.4 * radius / 0.3
+        rec.log(
+            f"{entity}/axes",
+            rr.Arrows3D(
+                origins=np.zeros((3, 3)),
+                vectors=np.eye(3) * s,
+                colors=[(255, 0, 0), (0, 255, 0), (0, 0, 255)],
+            ),
+        )
+
+    def _log_covariance(self, T: Rigid3, covariance: np.ndarray) -> None:
+        """3-sigma ellipsoid of the position (covariance in the target axes, rotated into the
+        camera frame)."""
+        C = T.R @ covariance[3:, 3:] @ T.R.T
+        w, V = np.linalg.eigh(0.5 * (C + C.T))
+        if np.linalg.det(V) < 0:
+            V[:, 0] = -V[:, 0]
+        self.rec.log(
+            COVARIANCE,
+            rr.Ellipsoids3D(
+                centers=[T.t],
+                half_sizes=[3.0 * np.sqrt(np.clip(w, 0, None))],
+                quaternions=[matrix_to_quat_xyzw(V)],
+                colors=[(60, 160, 255)],
+                fill_mode=rr.components.FillMode.MajorWireframe,
+            ),
+        )
+
+    # -- end of run -------------------------------------------------------------------------
+
+    def log_final(
+        self,
+        name: str,
+        frames: Sequence[int],
+        poses: Sequence[Rigid3],
+        truth: Sequence[Rigid3 | None] | None = None,
+        spin_deg_per_frame: Sequence[float] | None = None,
+    ) -> None:
+        """A whole trajectory known only at the end (the smoothed one): its line and its
+        error and spin series at every frame."""
+        rec = self.rec
+        for k, (i, T) in enumerate(zip(frames, poses, strict=True)):
+            rec.set_time("frame", sequence=int(i))
+            tk = truth[k] if truth is not None else None
+            if tk is not None:
+                rec.log(
+                    f"{PLOTS}/error/position_cm/{name}",
+                    rr.Scalars(100.0 * float(np.linalg.norm(T.t - tk.t))),
+                )
+                cos = float(np.clip(T.R[:, 2] @ tk.R[:, 2], -1.0, 1.0))
+                rec.log(
+                    f"{PLOTS}/error/normal_deg/{name}",
+                    rr.Scalars(float(np.degrees(np.arccos(cos)))),
+                )
+            if spin_deg_per_frame is not None:
+                rec.log(f"{PLOTS}/spin/{name}", rr.Scalars(float(spin_deg_per_frame[k])))
+        rec.log(
+            f"{TRAJECTORY}/{name}",
+            rr.LineStrips3D(
+                [np.array([T.t for T in poses])], colors=[COLORS.get(name, (255, 255, 255))]
+            ),
+            static=True,
+        )
+
+    def close(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()
