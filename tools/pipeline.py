@@ -11,8 +11,10 @@ replaced only with ``overwrite``, stays as it was):
 - ``estimate.npz``: the same estimate with full 6x6 covariances (``eval`` uses them for NEES).
 - ``frontend_pose.tum``: the per-frame (unsmoothed) poses of the frontend.
 - ``measurements.parquet``: the frontend's measurements (tools.files).
-- ``timings.csv``: per frame and stage [ms] (wall clock: the only output that varies run to run,
-  with run.rrd).
+- ``timings.csv``: per frame and stage [ms]: ``frontend_<stage>``, ``frontend_total``, each
+  estimator's ``add()`` (``backend_<name>``) and its own stages (``backend_<name>_<stage>``,
+  e.g. ``backend_online_update``: iSAM2's update). Wall clock: with run.rrd the only output
+  that varies run to run.
 - ``config.yaml``: the resolved configuration; ``run.yaml``: provenance (sequence, estimator).
 - ``run.rrd``: the Rerun recording (tools.recording).
 """
@@ -35,7 +37,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from satpose.backend import BackendConfig, BackendError, Estimate, make_estimator
+from satpose.backend import BackendConfig, BackendError, Estimate, StepReport, make_estimator
 from satpose.datasets.config import to_plain
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3
@@ -286,7 +288,16 @@ def _run(
 ) -> RunResult:
     """The run itself, writing into the (staging) folder ``out``."""
     names = ["online", "offline", "kalman"] if cfg.compare else [estimator]
-    estimators = {name: make_estimator(name, seq.calibration, cfg.backend) for name in names}
+    steps: dict[str, float] = {}  # the estimators' own stage times of the current frame
+
+    def hook(report: StepReport) -> None:
+        if report.step == "add":
+            for stage, ms in report.timings_ms.items():
+                steps[f"backend_{report.estimator}_{stage}"] = ms
+
+    estimators = {
+        name: make_estimator(name, seq.calibration, cfg.backend, hook=hook) for name in names
+    }
     frontend = StereoFrontend(seq.calibration, cfg.frontend)
     recorder = RunRecorder(out / "run.rrd", seq.calibration, seq.target, cfg.recording, spawn=spawn)
     results: list[FrameMeasurements] = []
@@ -302,10 +313,12 @@ def _run(
                 **{f"frontend_{s}": v for s, v in m.timings_ms.items()},
                 "frontend_total": (t1 - t0) * 1000.0,
             }
+            steps.clear()
             for name, est in estimators.items():
                 t2 = time.perf_counter()
                 est.add(m)
                 row[f"backend_{name}"] = (time.perf_counter() - t2) * 1000.0
+            row.update(steps)
             timing_rows.append(row)
             results.append(m)
             _record(recorder, seq, k, frame, m, estimators, row)
@@ -348,7 +361,11 @@ def _run(
         out / "frontend_pose.tum",
     )
     write_measurements(results, out / "measurements.parquet", timings=False)
-    tdf = pd.DataFrame(timing_rows).fillna(0.0)
+    tdf = pd.DataFrame(timing_rows)
+    # a frontend stage that did not run took 0 ms; an estimator stage that did not happen
+    # (e.g. iSAM2's update during its warm-up) stays empty
+    front = [c for c in tdf.columns if c.startswith("frontend_")]
+    tdf[front] = tdf[front].fillna(0.0)
     atomic_write(out / "timings.csv", lambda tmp: tdf.to_csv(tmp, index=False, float_format="%.3f"))
     text = yaml.safe_dump(to_plain(cfg), sort_keys=False)
     atomic_write(out / "config.yaml", lambda tmp: Path(tmp).write_text(text))

@@ -289,7 +289,11 @@ def _spin_plot(run: Path, est, label, others, seq) -> Path:
 def _timing_plot(run: Path) -> Path:
     df = pd.read_csv(run / "timings.csv")
     stages = [c for c in df.columns if c.startswith("frontend_") and c != "frontend_total"]
-    backends = [c for c in df.columns if c.startswith("backend_")]
+    backends = [
+        c for c in df.columns if c in ("backend_online", "backend_offline", "backend_kalman")
+    ]
+    if "backend_online_update" in df.columns:
+        backends.append("backend_online_update")
     fig, ax = plt.subplots(figsize=(8, 4))
     ax.stackplot(
         df["frame"],
@@ -298,7 +302,10 @@ def _timing_plot(run: Path) -> Path:
         alpha=0.8,
     )
     for c in backends:
-        ax.plot(df["frame"], df[c], lw=1, label=c.replace("_", " "))
+        label = c.removeprefix("backend_").replace("_", " ") + (
+            " add()" if c.count("_") == 1 else ""
+        )
+        ax.plot(df["frame"], df[c], lw=1, label=label)
     ax.set_xlabel("frame")
     ax.set_ylabel("time [ms]")
     ax.set_title("Time per frame: frontend stages (stacked) and backend updates")
