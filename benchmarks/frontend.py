@@ -21,9 +21,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from _common import ensure_rendered  # benchmarks/_common.py (scripts run from the root)
 
-from satpose.datasets.render import render_sequence
-from satpose.datasets.scenarios import preset
 from satpose.datasets.sequence import Sequence, load_sequence
 from satpose.frontend.conics import circle_to_conic, conic_to_ellipse
 from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
@@ -38,14 +37,6 @@ from satpose.tools.metrics import (
 
 DEFAULT = ["paper-docking", "close-approach", "tumble"]
 PAPER = {"7-3 m": (1.74, 0.94), "7-5 m": (2.29, 1.14), "5-3 m": (1.19, 0.73)}
-
-
-def ensure_rendered(name: str, root: Path) -> Path:
-    out = root / name
-    if not (out / "frames.csv").is_file():
-        print(f"rendering {name} into {out} (a few minutes)", flush=True)
-        render_sequence(preset(name), out, overwrite=True)
-    return out
 
 
 def run(seq: Sequence, method: str) -> tuple[list, list[float]]:  # type: ignore[type-arg]

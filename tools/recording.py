@@ -216,24 +216,26 @@ class RunRecorder:
                 )
         if truth is not None:
             for name, T in estimates.items():
-                if T is None:
-                    continue
-                rec.log(
-                    f"{PLOTS}/error/position_cm/{name}",
-                    rr.Scalars(100.0 * float(np.linalg.norm(T.t - truth.t))),
-                )
-                # The ring normal (target z) does not depend on the estimator's choice of x.
-                cos = float(np.clip(T.R[:, 2] @ truth.R[:, 2], -1.0, 1.0))
-                rec.log(
-                    f"{PLOTS}/error/normal_deg/{name}",
-                    rr.Scalars(float(np.degrees(np.arccos(cos)))),
-                )
+                if T is not None:
+                    self._log_errors(name, T, truth)
         for name, rate in (spin_deg_per_frame or {}).items():
             rec.log(f"{PLOTS}/spin/{name}", rr.Scalars(float(rate)))
         for stage, ms in (timings_ms or {}).items():
             rec.log(f"{PLOTS}/timing_ms/{stage}", rr.Scalars(float(ms)))
         if m.failures:
             rec.log(FAILURES, rr.TextLog("; ".join(m.failures), level=rr.TextLogLevel.WARN))
+
+    def _log_errors(self, name: str, T: Rigid3, truth: Rigid3) -> None:
+        """Position error [cm] and ring-normal error [deg] of one estimate (the normal, target
+        z, does not depend on the estimator's choice of the body x axis)."""
+        self.rec.log(
+            f"{PLOTS}/error/position_cm/{name}",
+            rr.Scalars(100.0 * float(np.linalg.norm(T.t - truth.t))),
+        )
+        cos = float(np.clip(T.R[:, 2] @ truth.R[:, 2], -1.0, 1.0))
+        self.rec.log(
+            f"{PLOTS}/error/normal_deg/{name}", rr.Scalars(float(np.degrees(np.arccos(cos))))
+        )
 
     def _log_detections(self, m: FrameMeasurements) -> None:
         rec = self.rec
@@ -348,15 +350,7 @@ class RunRecorder:
             rec.set_time("frame", sequence=int(i))
             tk = truth[k] if truth is not None else None
             if tk is not None:
-                rec.log(
-                    f"{PLOTS}/error/position_cm/{name}",
-                    rr.Scalars(100.0 * float(np.linalg.norm(T.t - tk.t))),
-                )
-                cos = float(np.clip(T.R[:, 2] @ tk.R[:, 2], -1.0, 1.0))
-                rec.log(
-                    f"{PLOTS}/error/normal_deg/{name}",
-                    rr.Scalars(float(np.degrees(np.arccos(cos)))),
-                )
+                self._log_errors(name, T, tk)
             if spin_deg_per_frame is not None:
                 rec.log(f"{PLOTS}/spin/{name}", rr.Scalars(float(spin_deg_per_frame[k])))
         rec.log(
