@@ -123,13 +123,24 @@ def timing_stats(results: list, wall: list[float]) -> dict[str, float]:  # type:
         for k, v in m.timings_ms.items():
             stages.setdefault(k, []).append(v)
     out = {k: float(np.median(v)) for k, v in stages.items()}
+    out.update({f"{k}_runs": float(len(v)) for k, v in stages.items()})
+    out["frames"] = float(len(results))
     out["total_median"] = float(np.median(wall))
     out["total_p95"] = float(np.percentile(wall, 95))
     return out
 
 
+def _stage_cell(t: dict[str, float], stage: str) -> str:
+    """Median over the frames where the stage ran, with their count if not every frame."""
+    runs = int(t.get(f"{stage}_runs", 0))
+    if runs == 0:
+        return "-"
+    cell = f"{t[stage]:.1f}"
+    return cell if runs == int(t["frames"]) else f"{cell} ({runs} frames)"
+
+
 def markdown(rows: list[dict[str, object]], args: argparse.Namespace) -> str:
-    cmd = "python benchmarks/frontend.py" + (
+    cmd = args.generated_by or "python benchmarks/frontend.py" + (
         " " + " ".join(args.sequences) if args.sequences else ""
     )
     lines = [
@@ -220,13 +231,15 @@ def markdown(rows: list[dict[str, object]], args: argparse.Namespace) -> str:
         t = r["timing"]
         lines.append(
             f"| {r['name']} | "
-            + " | ".join(f"{t.get(s, 0.0):.1f}" for s in stages)
+            + " | ".join(_stage_cell(t, s) for s in stages)
             + f" | {t['total_median']:.0f} | {t['total_p95']:.0f} |"
         )
     lines += [
         "",
-        "Stages run only when needed (`orb` at close range or with few landmarks), so "
-        "a stage's median can be 0. The paper's frontend: 1739 ms per frame (C, i7-8700).",
+        "Stages run only when needed (`orb` at close range, with few landmarks or while "
+        "the landmarks are not mapped yet): a stage's median is over the frames where it ran, "
+        "their count in parentheses; the total is over all frames. The paper's frontend: "
+        "1739 ms per frame (C, i7-8700).",
     ]
     return "\n".join(lines) + "\n"
 
@@ -241,6 +254,7 @@ def main() -> None:
         help="where preset sequences are rendered (default runs/bench)",
     )
     parser.add_argument("--out", type=Path, default=Path("docs/results/frontend.md"))
+    parser.add_argument("--generated-by", help="command named in the table's header")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     paths = [Path(p) for p in args.sequences] or [ensure_rendered(n, args.data) for n in DEFAULT]

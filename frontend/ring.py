@@ -81,6 +81,10 @@ class RingConfig:
         max_refine_rms_px: largest accepted RMS distance of the inliers to the ellipse.
         outlier_sigma: inliers are within this many robust standard deviations.
         edges: sub-pixel edge settings.
+        outer_search_scales: at acquisition, when the detector finds no larger concentric
+            ellipse around a candidate, sub-pixel edges are searched around the candidate
+            scaled by these factors (`RingTracker._outer_by_search`).
+        outer_search_coverage: fraction of the ``edge_points`` normals such a fit must keep.
     """
 
     track_points: int = 16
@@ -105,6 +109,8 @@ class RingConfig:
             smooth_sigma_px=0.6, step_px=0.25, locate="model", model_window_px=(-2.0, 0.5)
         )
     )
+    outer_search_scales: tuple[float, ...] = (1.06, 1.13, 1.21, 1.3, 1.4, 1.5)
+    outer_search_coverage: float = 0.7
 
 
 @dataclass
@@ -266,13 +272,9 @@ class RingTracker:
                 d = float(np.mean(np.abs(_distance(pts, e))))
                 if d < best:
                     chosen, best, source = e, d, "detected"
-            for e, p in found:  # largest first
-                grows = 1.03 < (e.a + e.b) / (predicted.a + predicted.b) < 1.6
-                concentric = float(np.linalg.norm(e.center - predicted.center)) < 0.1 * predicted.a
-                if grows and concentric and abs(e.b / e.a - predicted.b / predicted.a) < 0.1:
-                    refined = self._refine(image_s, image.gray, e, p)
-                    if refined is not None:
-                        return (self._observation(refined, "detected"), p), None
+            larger = self._larger_concentric(image, image_s, predicted, found)
+            if larger is not None:
+                return larger, None
         refined = self._refine(image_s, image.gray, chosen, pol)
         if refined is None:
             return None, f"ring ({self.camera.value}): weak edge support around the prediction"
@@ -289,12 +291,62 @@ class RingTracker:
         image_s = smoothed(image.gray, cfg.edges)
         out = []
         for e, pol in self._plausible(image, None, image_s, None):
+            # the whole-image pass can miss the outer edge of a small ring next to the inner
+            # one; a search around each candidate finds it (as `follow` does later)
+            larger = self._larger_concentric(image, image_s, e)
+            if larger is None:
+                larger = self._outer_by_search(image, image_s, e)
+            if larger is not None:
+                out.append(larger)
             refined = self._refine(image_s, image.gray, e, pol)
             if refined is not None:
                 out.append((self._observation(refined, "detected"), pol))
-                if len(out) >= max_candidates:
-                    break
-        return out
+            if len(out) >= max_candidates:
+                break
+        return out[:max_candidates]
+
+    def _larger_concentric(
+        self,
+        image: PreparedImage,
+        image_s: np.ndarray,
+        e0: Ellipse,
+        found: list[tuple[Ellipse, int]] | None = None,
+    ) -> tuple[EllipseObservation, int] | None:
+        """The largest ring-like ellipse concentric with ``e0`` and up to 1.6 times its size
+        (of either polarity), refined: the outer front edge is the largest of the rim's
+        concentric edges. ``found``: the detections in a window around ``e0`` if already
+        made."""
+        if found is None:
+            grown = Ellipse(cx=e0.cx, cy=e0.cy, a=e0.a * 1.3, b=e0.b * 1.3, theta=e0.theta)
+            found = self._plausible(image, self._roi(grown, image.gray.shape), image_s, None)
+        for e, p in found:  # largest first
+            if _grown_concentric(e, e0):
+                refined = self._refine(image_s, image.gray, e, p)
+                if refined is not None:
+                    return self._observation(refined, "detected"), p
+        return None
+
+    def _outer_by_search(
+        self, image: PreparedImage, image_s: np.ndarray, e0: Ellipse
+    ) -> tuple[EllipseObservation, int] | None:
+        """The largest concentric edge found by refining scaled copies of ``e0`` directly on
+        sub-pixel edges (either polarity), for when the detector misses the outer edge of a
+        small ring next to its inner one. Only a well-covered fit counts (a closed edge all
+        round, not foil texture)."""
+        cfg = self.config
+        best: tuple[EllipseObservation, int] | None = None
+        for scale in cfg.outer_search_scales:
+            start = Ellipse(cx=e0.cx, cy=e0.cy, a=e0.a * scale, b=e0.b * scale, theta=e0.theta)
+            for pol in (+1, -1):
+                refined = self._refine(image_s, image.gray, start, pol)
+                if refined is None or not _grown_concentric(refined[0], e0):
+                    continue
+                if refined[3].shape[0] < cfg.outer_search_coverage * cfg.edge_points:
+                    continue
+                obs = self._observation(refined, "detected")
+                if best is None or obs.axes_px.sum() > best[0].axes_px.sum() + 1.0:
+                    best = (obs, pol)
+        return best
 
     def commit(self, obs: EllipseObservation, image: PreparedImage, polarity: int) -> None:
         """Keep ``obs`` as the track for the next frame."""
@@ -349,6 +401,14 @@ class RingTracker:
         if rms > cfg.max_refine_rms_px or e.b < cfg.min_axis_px:
             return None
         return e, cov, rms, P[keep]
+
+
+def _grown_concentric(e: Ellipse, e0: Ellipse) -> bool:
+    """``e`` could be an outer concentric edge of the rim whose edge ``e0`` is: 3 % to 60 %
+    larger, the same centre (within a tenth of the major axis) and shape."""
+    grows = 1.03 < (e.a + e.b) / (e0.a + e0.b) < 1.6
+    concentric = float(np.linalg.norm(e.center - e0.center)) < 0.1 * e0.a
+    return grows and concentric and abs(e.b / e.a - e0.b / e0.a) < 0.1
 
 
 def _distance(points: np.ndarray, e: Ellipse) -> np.ndarray:

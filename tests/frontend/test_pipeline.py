@@ -136,3 +136,29 @@ def test_frontend_cli_writes_its_files(docking_small: Path, tmp_path: Path) -> N
     np.testing.assert_allclose(t, [f.t_s for f in seq])
     assert len(read_measurements(out / "measurements.parquet")) == len(seq)
     assert (out / "config.yaml").is_file()
+
+
+def test_small_ring_is_acquired_on_its_outer_edge(tmp_path: Path) -> None:
+    """At 7 m the detector finds only the inner edge of a 0.22 m ring (the outer one is 6 px
+    away); acquisition must still start on the outer front edge (edge search around the
+    candidate), or the first frames measure a 0.19 m circle."""
+    from satpose.datasets.config import replace_nested
+    from satpose.datasets.render import render_sequence
+    from satpose.datasets.scenarios import preset, scaled
+
+    ring = {"outer_radius_m": 0.22, "inner_radius_m": 0.19}
+    scenario = scaled(
+        replace_nested(preset("paper-docking"), {"target": {"ring": ring}}), frames=1, spp=4
+    )
+    seq = load_sequence(render_sequence(scenario, tmp_path / "small-ring"))
+    m = StereoFrontend(seq.calibration).process_frame(seq[0])
+    assert m.ring is not None, m.failures
+    assert m.ring.radius_m == pytest.approx(0.22, abs=0.005)
+    assert seq.truth is not None and seq.target is not None and seq.target.ring is not None
+    for e in m.ring.ellipses:
+        cam = seq.calibration.camera(e.camera.value)
+        T = seq.truth.pose(0)
+        cam_from_target = T if e.camera.value == "left" else seq.calibration.right_from_left @ T
+        true = conic_to_ellipse(circle_to_conic(cam.K, cam_from_target, seq.target.ring.radius_m))
+        assert np.linalg.norm(e.center_px - true.center) < 0.5
+        assert np.abs(e.axes_px - [true.a, true.b]).max() < 1.0
