@@ -71,6 +71,7 @@ def main() -> None:
     out = "docs/results/frontend_variations.md"
     cmd = [sys.executable, str(Path(__file__).with_name("frontend.py")), "--out", out]
     cmd += ["--generated-by", "python benchmarks/frontend_variations.py"]
+    cmd += ["--title", "Stereo frontend (seed 000) on held-out variants"]
     subprocess.run([*cmd, *map(str, paths)], check=True)
 
 
