@@ -180,8 +180,9 @@ def refine_ellipse(
     if n < 6:
         raise ConicError(f"refinement needs >= 6 points, got {n}")
     x = init.params.copy()
+    t = None  # the points' foot parameters, carried from one iteration to the next
     for _ in range(iterations):
-        r, J = _orthogonal_residuals(p, x)
+        r, J, t = _orthogonal_residuals(p, x, t)
         try:
             step = np.linalg.lstsq(J, -r, rcond=None)[0]
         except np.linalg.LinAlgError:
@@ -189,7 +190,9 @@ def refine_ellipse(
         x = x + step
         if np.abs(step[:4]).max() < 1e-9 and abs(step[4]) < 1e-11:
             break
-    r, J = _orthogonal_residuals(p, x)
+        if np.abs(step[:4]).max() > 0.05 * min(abs(x[2]), abs(x[3])) or abs(step[4]) > 0.05:
+            t = None  # a large step: the old feet may lead Newton to a far foot point
+    r, J, _ = _orthogonal_residuals(p, x, t)
     rms = float(np.sqrt(np.mean(r**2)))
     s2 = (sigma_px**2) if sigma_px is not None else float(r @ r) / max(n - 5, 1)
     JtJ = J.T @ J
@@ -205,19 +208,27 @@ def refine_ellipse(
     return ell, 0.5 * (cov + cov.T), rms
 
 
-def _orthogonal_residuals(p: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Signed orthogonal distances of points to the ellipse ``x`` and their Jacobian (N, 5)."""
+def _orthogonal_residuals(
+    p: np.ndarray, x: np.ndarray, t: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Signed orthogonal distances of points to the ellipse ``x``, their Jacobian (N, 5) and
+    the points' foot parameters (N,). ``t``: foot parameters of an ellipse close to ``x`` (the
+    previous Gauss-Newton iterate) to start Newton's method from; None: start from scratch."""
     cx, cy, a, b, th = x
     c, s = math.cos(th), math.sin(th)
     dx, dy = p[:, 0] - cx, p[:, 1] - cy
     u = c * dx + s * dy  # point in the ellipse frame
     v = -s * dx + c * dy
-    t = np.arctan2(a * v, b * u)  # initial foot parameter (exact for a circle)
-    for _ in range(5):  # Newton on d/dt |q - e(t)|^2 = 0 (quadratic: 5 steps reach 1e-12)
+    # Newton on d/dt |q - e(t)|^2 = 0, quadratic: from scratch (the exact foot of a circle)
+    # 5 steps reach 1e-12; from the previous iterate's feet 3 do.
+    steps = 5 if t is None else 3
+    if t is None:
+        t = np.arctan2(a * v, b * u)
+    ab = a * a - b * b
+    for _ in range(steps):
         ct, st = np.cos(t), np.sin(t)
-        ex, ey = a * ct, b * st
-        f = (a * a - b * b) * st * ct - u * a * st + v * b * ct
-        fp = (a * a - b * b) * (ct * ct - st * st) - u * a * ct - v * b * st
+        f = ab * st * ct - u * a * st + v * b * ct
+        fp = ab * (ct * ct - st * st) - u * a * ct - v * b * st
         t = t - f / np.where(np.abs(fp) > 1e-12, fp, 1e-12)
     ct, st = np.cos(t), np.sin(t)
     ex, ey = a * ct, b * st
@@ -232,7 +243,7 @@ def _orthogonal_residuals(p: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.
     J[:, 2] = -ct * nx
     J[:, 3] = -st * ny
     J[:, 4] = v * nx - u * ny  # rotating the ellipse frame moves the point by (v, -u)
-    return r, J
+    return r, J, t
 
 
 def circle_to_conic(K: np.ndarray, cam_from_circle: Rigid3, radius: float) -> np.ndarray:

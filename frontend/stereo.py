@@ -272,16 +272,45 @@ def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, v
 
 
+def _tangent_bases(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`tangent_basis` of each row of ``normals`` (M, 3): two (M, 3) arrays."""
+    x, y, z = normals.T
+    small = np.abs(x) < 0.9
+    u = np.where(
+        small[:, None],
+        np.c_[np.zeros_like(x), z, -y],  # n x e_x
+        np.c_[-z, np.zeros_like(x), x],  # n x e_y
+    )
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return u, np.cross(normals, u)
+
+
 def _circle_conic(
     K: np.ndarray, cam_from_left: Rigid3, center: np.ndarray, normal: np.ndarray, radius: float
 ) -> np.ndarray:
     """Image conic of a left-frame circle in a camera ``cam_from_left`` with intrinsics K."""
     u, v = tangent_basis(normal)
-    c = cam_from_left.apply(center)
-    H = K @ np.c_[cam_from_left.rotate(u) * radius, cam_from_left.rotate(v) * radius, c]
-    Hinv = np.linalg.inv(H)
-    C = Hinv.T @ np.diag([1.0, 1.0, -1.0]) @ Hinv
-    return C / np.linalg.norm(C)
+    return _circle_conics(K, cam_from_left, center[None], u[None], v[None], np.array([radius]))[0]
+
+
+def _circle_conics(
+    K: np.ndarray,
+    cam_from_left: Rigid3,
+    centers: np.ndarray,
+    us: np.ndarray,
+    vs: np.ndarray,
+    radii: np.ndarray,
+) -> np.ndarray:
+    """Image conics (M, 3, 3), unit Frobenius norm, of M left-frame circles given by centre,
+    two orthonormal in-plane directions and radius, in a camera ``cam_from_left``."""
+    R, t = cam_from_left.R, cam_from_left.t
+    H = np.empty((len(centers), 3, 3))
+    H[:, :, 0] = (us @ R.T) * radii[:, None]
+    H[:, :, 1] = (vs @ R.T) * radii[:, None]
+    H[:, :, 2] = centers @ R.T + t
+    Hinv = np.linalg.inv(K @ H)
+    C = np.einsum("mki,mkj->mij", Hinv * np.array([1.0, 1.0, -1.0])[:, None], Hinv)
+    return C / np.linalg.norm(C, axis=(1, 2))[:, None, None]
 
 
 def _sampson_and_jacobian(p: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -345,18 +374,21 @@ def refine_circle(
         return c0 + x[:3], n / np.linalg.norm(n), r0 * math.exp(x[5])
 
     steps = np.array([1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
+    # The circle and its 12 central-difference neighbours, as rows of local parameters.
+    dxs = np.vstack([np.zeros(6), np.diag(steps), -np.diag(steps)])
 
     def linearise(c: np.ndarray, n: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
+        u0, v0 = tangent_basis(n)
+        centers = c + dxs[:, :3]
+        normals = n + dxs[:, 3:4] * u0 + dxs[:, 4:5] * v0
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        us, vs = _tangent_bases(normals)
+        radii = r * np.exp(dxs[:, 5])
         res, jac = [], []
         for K, T, p in cams:
-            C0 = _circle_conic(K, T, c, n, r)
-            dC = np.empty((9, 6))
-            for k in range(6):
-                dx = np.zeros(6)
-                dx[k] = steps[k]
-                Cp = _circle_conic(K, T, *unpack(dx, c, n, r))
-                Cm = _circle_conic(K, T, *unpack(-dx, c, n, r))
-                dC[:, k] = (Cp - Cm).reshape(9) / (2 * steps[k])
+            C = _circle_conics(K, T, centers, us, vs, radii)
+            C0 = C[0]
+            dC = (C[1:7] - C[7:13]).reshape(6, 9).T / (2 * steps)
             d, Jd = _sampson_and_jacobian(p, C0)
             res.append(d)
             jac.append(Jd @ dC)
