@@ -120,7 +120,7 @@ class RingTrack:
     ellipse: Ellipse
     points: np.ndarray  # (n, 2) the tracked points on it
     gray8: np.ndarray  # the image they were sampled in
-    polarity: int  # +1: the rim is brighter than its surroundings, -1: darker
+    polarity: int  # +1: the rim is brighter than its surroundings, -1: darker, 0: mixed
     age: int = 0  # frames followed since acquisition
 
 
@@ -330,14 +330,15 @@ class RingTracker:
         self, image: PreparedImage, image_s: np.ndarray, e0: Ellipse
     ) -> tuple[EllipseObservation, int] | None:
         """The largest concentric edge found by refining scaled copies of ``e0`` directly on
-        sub-pixel edges (either polarity), for when the detector misses the outer edge of a
-        small ring next to its inner one. Only a well-covered fit counts (a closed edge all
-        round, not foil texture)."""
+        sub-pixel edges (either polarity, or mixed: `_edges`), for when the detector misses
+        the outer edge: of a small ring next to its inner one, or of a rim in side light whose
+        outer edge is brighter than the foil on one side and darker on the other. Only a
+        well-covered fit counts (a closed edge all round, not foil texture)."""
         cfg = self.config
         best: tuple[EllipseObservation, int] | None = None
         for scale in cfg.outer_search_scales:
             start = Ellipse(cx=e0.cx, cy=e0.cy, a=e0.a * scale, b=e0.b * scale, theta=e0.theta)
-            for pol in (+1, -1):
+            for pol in (+1, -1, 0):
                 refined = self._refine(image_s, image.gray, start, pol)
                 if refined is None or not _grown_concentric(refined[0], e0):
                     continue
@@ -376,9 +377,7 @@ class RingTracker:
         keep = np.zeros(0, bool)
         P = np.zeros((0, 2))
         for _ in range(2):
-            pts, _ = edges_along_normals(
-                image_s, e.points(n), e.normals(n), polarity, half, cfg.edges, raw=raw
-            )
+            pts = _edges(image_s, raw, e, n, polarity, half, cfg.edges)
             P = pts[np.isfinite(pts[:, 0])]
             if P.shape[0] < cfg.min_edge_fraction * n:
                 return None
@@ -401,6 +400,29 @@ class RingTracker:
         if rms > cfg.max_refine_rms_px or e.b < cfg.min_axis_px:
             return None
         return e, cov, rms, P[keep]
+
+
+def _edges(
+    image_s: np.ndarray,
+    raw: np.ndarray,
+    e: Ellipse,
+    n: int,
+    polarity: int,
+    half: float,
+    config: EdgeSearchConfig,
+) -> np.ndarray:
+    """Sub-pixel edges along ``n`` normals of ``e`` (NaN where none). ``polarity`` 0: a rim
+    brighter than its surroundings on one side and darker on the other (side light: lit foil
+    beside the rim, shadow on the far side); each normal keeps the stronger of both signs."""
+    if polarity != 0:
+        return edges_along_normals(
+            image_s, e.points(n), e.normals(n), polarity, half, config, raw=raw
+        )[0]
+    brighter, c_b = edges_along_normals(
+        image_s, e.points(n), e.normals(n), +1, half, config, raw=raw
+    )
+    darker, c_d = edges_along_normals(image_s, e.points(n), e.normals(n), -1, half, config, raw=raw)
+    return np.where((c_d > c_b)[:, None], darker, brighter)
 
 
 def _grown_concentric(e: Ellipse, e0: Ellipse) -> bool:

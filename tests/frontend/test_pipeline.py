@@ -9,9 +9,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from satpose.datasets.sequence import load_sequence
+from satpose.datasets.sequence import Sequence, load_sequence
 from satpose.frontend.conics import circle_to_conic, conic_to_ellipse
-from satpose.frontend.measurements import LandmarkKind
+from satpose.frontend.measurements import FrameMeasurements, LandmarkKind
 from satpose.frontend.pipeline import StereoFrontend
 from satpose.tools.files import read_measurements, read_tum, write_measurements
 from satpose.tools.metrics import pose_errors
@@ -138,6 +138,20 @@ def test_frontend_cli_writes_its_files(docking_small: Path, tmp_path: Path) -> N
     assert (out / "config.yaml").is_file()
 
 
+def _assert_outer_front_edge(seq: Sequence, i: int, m: FrameMeasurements) -> None:
+    """The frame's ring ellipses are the truth's outer front edge (not the inner edge, 6-12 px
+    inside it, nor another concentric edge)."""
+    assert m.ring is not None, m.failures
+    assert seq.truth is not None and seq.target is not None and seq.target.ring is not None
+    for e in m.ring.ellipses:
+        cam = seq.calibration.camera(e.camera.value)
+        T = seq.truth.pose(i)
+        cam_from_target = T if e.camera.value == "left" else seq.calibration.right_from_left @ T
+        true = conic_to_ellipse(circle_to_conic(cam.K, cam_from_target, seq.target.ring.radius_m))
+        assert np.linalg.norm(e.center_px - true.center) < 0.5
+        assert np.abs(e.axes_px - [true.a, true.b]).max() < 1.0
+
+
 def test_small_ring_is_acquired_on_its_outer_edge(tmp_path: Path) -> None:
     """At 7 m the detector finds only the inner edge of a 0.22 m ring (the outer one is 6 px
     away); acquisition must still start on the outer front edge (edge search around the
@@ -154,11 +168,28 @@ def test_small_ring_is_acquired_on_its_outer_edge(tmp_path: Path) -> None:
     m = StereoFrontend(seq.calibration).process_frame(seq[0])
     assert m.ring is not None, m.failures
     assert m.ring.radius_m == pytest.approx(0.22, abs=0.005)
-    assert seq.truth is not None and seq.target is not None and seq.target.ring is not None
-    for e in m.ring.ellipses:
-        cam = seq.calibration.camera(e.camera.value)
-        T = seq.truth.pose(0)
-        cam_from_target = T if e.camera.value == "left" else seq.calibration.right_from_left @ T
-        true = conic_to_ellipse(circle_to_conic(cam.K, cam_from_target, seq.target.ring.radius_m))
-        assert np.linalg.norm(e.center_px - true.center) < 0.5
-        assert np.abs(e.axes_px - [true.a, true.b]).max() < 1.0
+    _assert_outer_front_edge(seq, 0, m)
+
+
+def test_side_lit_ring_is_acquired_on_its_outer_edge(tmp_path: Path) -> None:
+    """`tumble`'s sun is off the camera axis: the grey rim is darker than the lit foil on one
+    side and brighter than the shadowed foil on the other, so its outer edge has no single
+    polarity and the detector only finds the inner edge (0.258 m instead of 0.300 m).
+    Acquisition must take the outer edge with mixed polarity from the first frame it has."""
+    from satpose.datasets.render import render_sequence
+    from satpose.datasets.scenarios import preset, scaled
+
+    seq = load_sequence(
+        # 16 spp: at 4 the sunlit foil's sampling noise hides the ring from the detector
+        render_sequence(scaled(preset("tumble"), frames=3, spp=16), tmp_path / "tumble")
+    )
+    fe = StereoFrontend(seq.calibration)
+    rings = 0
+    for i, frame in enumerate(seq):
+        m = fe.process_frame(frame)
+        if m.ring is None:
+            continue
+        rings += 1
+        assert m.ring.radius_m == pytest.approx(0.30, abs=0.005), i
+        _assert_outer_front_edge(seq, i, m)
+    assert rings >= 2
