@@ -2,7 +2,7 @@
 
 States: ``X(i)`` (``target_from_left_cam``, see `satpose.backend.pose3`) and ``V(i)`` (body
 twist) for the ``i``-th frame added; in tight coupling also ``L(j)`` (landmarks, target frame)
-and ``R(0)`` (ring radius).
+and ``R(k)`` (the radius of each circle of the ring the frontend measured).
 
 The graph starts at the first frame that can fix the target frame — one with a pose (loose
 coupling) or with the ring and a landmark usable as the x-axis anchor (tight coupling).
@@ -32,8 +32,9 @@ from satpose.backend.factors import (
     landmark_factors,
     pose_factor,
     ring_factor,
+    ring_radius_factor,
 )
-from satpose.backend.keys import RADIUS, L, V, X
+from satpose.backend.keys import L, R, V, X
 from satpose.backend.motion import (
     MotionConfig,
     constant_twist_factor,
@@ -84,7 +85,7 @@ class GraphBuilder:
         self.start: int | None = None  # index of the frame that started the graph
         self.anchor: int | None = None
         self.landmarks: set[int] = set()
-        self.radius_initialized = False
+        self.circles: list[list[float]] = []  # the radii measured of each circle of the ring
         self.full_frames = 0  # frames whose measurements fix a whole pose
         self._pending: list[FrameMeasurements] = []
         self._hint: dict[int, tuple[Rigid3, np.ndarray]] = {}
@@ -236,6 +237,19 @@ class GraphBuilder:
         update.created.append(i)
         self._hint[i] = (pose, np.asarray(twist, float))
 
+    def _circle(self, radius_m: float) -> int:
+        """The circle of the ring a measured radius belongs to: the known circle whose median
+        radius is nearest, if within ``ring_circle_gap`` (relative); else a new one
+        (``len(self.circles)``). The rim's edges are concentric and coplanar (its front face),
+        so only the radius tells them apart; the centre and normal are shared."""
+        best, best_gap = len(self.circles), self.config.ring_circle_gap
+        for k, radii in enumerate(self.circles):
+            ref = float(np.median(radii))
+            gap = abs(radius_m - ref) / ref
+            if gap <= best_gap:
+                best, best_gap = k, gap
+        return best
+
     def _measurement_factors(
         self, i: int, m: FrameMeasurements, pose: Rigid3, update: GraphUpdate
     ) -> None:
@@ -246,10 +260,18 @@ class GraphBuilder:
             return
         observed = 0
         if m.ring is not None:
-            if self.config.ring_radius and not self.radius_initialized:
-                update.values.insert(RADIUS, np.array([m.ring.radius_m]))
-                self.radius_initialized = True
             update.factors.push_back(ring_factor(m.ring, i, self.config, self.clock))
+            if self.config.ring_radius:
+                k = self._circle(m.ring.radius_m)
+                if k == len(self.circles):
+                    self.circles.append([])
+                    update.values.insert(R(k), np.array([m.ring.radius_m]))
+                    if k:
+                        update.notes.append(
+                            f"ring: another circle of the rim, radius {m.ring.radius_m:.4f} m"
+                        )
+                self.circles[k].append(float(m.ring.radius_m))
+                update.factors.push_back(ring_radius_factor(m.ring, i, k, self.config, self.clock))
         target_from_cam = pose.inverse()
         for lm in m.landmarks:
             if lm.kind not in self.config.landmark_kinds:

@@ -29,7 +29,7 @@ from scipy.stats import chi2
 
 from satpose.backend import BackendConfig, Estimate, MeasurementConfig, MotionConfig, make_estimator
 from satpose.backend.estimate import StepReport
-from satpose.backend.factors import ring_factor
+from satpose.backend.factors import ring_factor, ring_radius_factor
 from satpose.backend.keys import RADIUS, V, X
 from satpose.backend.motion import constant_twist_factor, psd, sample_trajectory
 from satpose.backend.pose3 import exp, local_error, tangent, to_state
@@ -512,8 +512,13 @@ def custom_factor_section(run: Run) -> str:
             v_pose,
         ),
         (
-            "ring factor (Python CustomFactor, 6-D)",
+            "ring centre/normal factor (Python CustomFactor, 5-D)",
             ring_factor(ring, 0, MeasurementConfig()),
+            v_state,
+        ),
+        (
+            "ring radius factor (Python CustomFactor, 1-D)",
+            ring_radius_factor(ring, 0, 0, MeasurementConfig()),
             v_state,
         ),
         (

@@ -341,3 +341,42 @@ def test_hook_reports_every_step(cases) -> None:  # type: ignore[no-untyped-def]
             assert all(r.factors > 0 and r.relinearized is not None for r in adds[1:])
         if name == "offline":
             assert [r.step for r in reports][-1] == "optimize" and reports[-1].iterations
+
+
+# --------------------------------------------------------------------------------------------
+# The ring's circles
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["offline", "online"])
+def test_inner_and_outer_edge_get_their_own_radius(name: str, cases) -> None:  # type: ignore[no-untyped-def]
+    """The frontend may track the rim's inner front edge first (as on the rendered `tumble`)
+    and the outer one later: concentric, coplanar, 13% smaller. Each circle gets its own
+    radius variable, so the estimate stays consistent even without a robust kernel; one radius
+    shared by both circles drags the depth by decimetres."""
+    case = cases("frontend", "tumble", FRAMES, 11)
+    inner = 0.26 / 0.30
+    ms = [
+        replace(m, ring=replace(m.ring, radius_m=m.ring.radius_m * inner))
+        if m.frame < 6 and m.ring is not None
+        else m
+        for m in case.measurements
+    ]
+    errors = {}
+    for gap in (0.04, 0.99):  # 0.99: every ring is taken as the same circle
+        cfg = BackendConfig(measurements=MeasurementConfig(robust="none", ring_circle_gap=gap))
+        reports: list[StepReport] = []
+        est = make_estimator(name, case.calib, cfg, hook=reports.append)  # type: ignore[arg-type]
+        for m in ms:
+            est.add(m)
+        out = est.estimate()
+        e, _ = _errors(out, case)
+        errors[gap] = e
+        if gap == 0.04:
+            new_circle = [r.frame for r in reports if any("another circle" in n for n in r.notes)]
+            assert new_circle == [6]
+            # each frame's position within its own covariance (chi2(3), 99.9%)
+            pos = _nees(e[:, 3:], out.pose_covariance[:, 3:, 3:])
+            assert np.all(pos < chi2.ppf(0.999, 3)), pos.max()
+    shared = np.linalg.norm(errors[0.99][:, 3:], axis=1).mean()
+    assert shared > 10 * np.linalg.norm(errors[0.04][:, 3:], axis=1).mean()
