@@ -97,6 +97,16 @@ class MeasurementConfig:
             rim's front edges are ``(outer - inner) / outer`` apart (13% on the presets), the
             frontend's radius of one edge varies by < 1% (0.7% over paper-docking's 7 m to
             3 m); 4% is also the frontend's own limit (``StereoRingConfig.max_radius_change``).
+        landmark_kinds: landmark kinds used in tight coupling.
+        max_orb_per_frame: at most this many ORB landmarks per frame become factors (None: all):
+            the anchor, then the longest-tracked. ORB tracks are many (up to 360 per frame on
+            `tumble`) and short, each one a variable: they dominate iSAM2's cost, and beyond
+            ~20 per frame they did not improve the estimate of the rendered sequences
+            (docs/backend.md).
+        anchor_min_axis_distance_m: a landmark closer than this to the ring axis cannot fix
+            the x axis (same rule as the frontend's ``PoseConfig.min_axis_distance_m``).
+        gauge_sigma_m: standard deviation of the anchor's ``y = 0`` constraint [m]
+            (effectively hard).
     """
 
     coupling: Literal["loose", "tight"] = "tight"
@@ -111,6 +121,7 @@ class MeasurementConfig:
     anchor_min_axis_distance_m: float = 0.08
     gauge_sigma_m: float = 1e-6
     ring_circle_gap: float = 0.04
+    max_orb_per_frame: int | None = 20
 
     def __post_init__(self) -> None:
         if self.coupling not in ("loose", "tight"):
@@ -123,6 +134,8 @@ class MeasurementConfig:
             raise BackendError("gauge_sigma_m must be positive, anchor distance non-negative")
         if not 0 < self.ring_circle_gap < 1:
             raise BackendError(f"ring_circle_gap must be in (0, 1), got {self.ring_circle_gap}")
+        if self.max_orb_per_frame is not None and self.max_orb_per_frame < 0:
+            raise BackendError(f"max_orb_per_frame must be >= 0, got {self.max_orb_per_frame}")
         object.__setattr__(
             self, "landmark_kinds", tuple(LandmarkKind(k) for k in self.landmark_kinds)
         )

@@ -23,6 +23,7 @@ from scipy.stats import chi2
 
 from satpose.backend.errors import BackendError
 from satpose.backend.factors import (
+    KIND_PRIORITY,
     FactorClock,
     MeasurementConfig,
     StereoRig,
@@ -46,7 +47,7 @@ from satpose.backend.motion import (
 from satpose.backend.pose3 import local_error, to_state
 from satpose.datasets.geometry import Rigid3
 from satpose.datasets.sequence import Calibration
-from satpose.frontend.measurements import FrameMeasurements
+from satpose.frontend.measurements import FrameMeasurements, LandmarkKind, LandmarkMeasurement
 
 
 @dataclass
@@ -85,6 +86,9 @@ class GraphBuilder:
         self.start: int | None = None  # index of the frame that started the graph
         self.anchor: int | None = None
         self.landmarks: set[int] = set()
+        # landmarks seen once, not yet in the graph: track id -> (state index, sighting)
+        self._first_sightings: dict[int, tuple[int, LandmarkMeasurement]] = {}
+        self._sightings: dict[int, int] = {}  # sightings of the landmarks in the graph
         self.circles: list[list[float]] = []  # the radii measured of each circle of the ring
         self.full_frames = 0  # frames whose measurements fix a whole pose
         self._pending: list[FrameMeasurements] = []
@@ -169,7 +173,7 @@ class GraphBuilder:
         self._new_state(i, pose, twist, update)
         update.factors.push_back(constant_twist_factor(i - 1, i, dt, self.motion, self.clock))
         n = update.factors.size()
-        self._measurement_factors(i, m, pose, update)
+        self._measurement_factors(i, m, update)
         if update.factors.size() == n:
             update.notes.append("prediction only")
         return update
@@ -225,9 +229,9 @@ class GraphBuilder:
             dt = self.t_s[j + 1] - self.t_s[j]
             update.factors.push_back(constant_twist_factor(j, j + 1, dt, self.motion, self.clock))
         for j, pending in enumerate(self._pending):
-            self._measurement_factors(j, pending, pose, update)
+            self._measurement_factors(j, pending, update)
         self._pending = []
-        self._measurement_factors(i, m, pose, update)
+        self._measurement_factors(i, m, update)
         if i:
             update.notes.append(f"started: {i} earlier frame(s) tied by the motion prior")
 
@@ -236,6 +240,12 @@ class GraphBuilder:
         update.values.insert(V(i), np.asarray(twist, float))
         update.created.append(i)
         self._hint[i] = (pose, np.asarray(twist, float))
+
+    def _landmark_priority(self, lm: LandmarkMeasurement) -> tuple[int, int, int, int]:
+        """Sort key of a frame's landmarks (for `MeasurementConfig.max_orb_per_frame`): the
+        anchor, then by kind (corners, components, ORB), the most sightings so far, track id."""
+        seen = self._sightings.get(lm.track_id, int(lm.track_id in self._first_sightings))
+        return (lm.track_id != self.anchor, KIND_PRIORITY[lm.kind], -seen, lm.track_id)
 
     def _circle(self, radius_m: float) -> int:
         """The circle of the ring a measured radius belongs to: the known circle whose median
@@ -250,9 +260,7 @@ class GraphBuilder:
                 best, best_gap = k, gap
         return best
 
-    def _measurement_factors(
-        self, i: int, m: FrameMeasurements, pose: Rigid3, update: GraphUpdate
-    ) -> None:
+    def _measurement_factors(self, i: int, m: FrameMeasurements, update: GraphUpdate) -> None:
         if self.config.coupling == "loose":
             if m.pose is not None:
                 update.factors.push_back(pose_factor(m.pose, i, self.config))
@@ -272,17 +280,37 @@ class GraphBuilder:
                         )
                 self.circles[k].append(float(m.ring.radius_m))
                 update.factors.push_back(ring_radius_factor(m.ring, i, k, self.config, self.clock))
-        target_from_cam = pose.inverse()
-        for lm in m.landmarks:
+        orb_left = self.config.max_orb_per_frame
+        for lm in sorted(m.landmarks, key=self._landmark_priority):
             if lm.kind not in self.config.landmark_kinds:
                 continue
-            if lm.track_id not in self.landmarks:
-                if lm.point_m is None:
-                    continue  # a left-only sighting cannot place a new landmark
-                update.values.insert(L(lm.track_id), target_from_cam.apply(lm.point_m))
+            known = lm.track_id in self.landmarks
+            if not known and lm.track_id not in self._first_sightings:
+                # a first sighting: kept aside (one stereo sighting says nothing about the
+                # pose: the point's three coordinates absorb it), except for the anchor
+                if lm.point_m is not None:
+                    self._first_sightings[lm.track_id] = (i, lm)
+                if lm.track_id != self.anchor or lm.point_m is None:
+                    continue
+            if lm.kind == LandmarkKind.ORB and lm.track_id != self.anchor and orb_left is not None:
+                if orb_left <= 0:
+                    continue
+                orb_left -= 1
+            if not known:
+                # second sighting (or the anchor): the landmark enters the graph, with its
+                # first sighting, initialised there from the current pose of that frame
+                j, first = self._first_sightings.pop(lm.track_id)
+                assert first.point_m is not None
+                update.values.insert(
+                    L(lm.track_id), self._hint[j][0].inverse().apply(first.point_m)
+                )
                 self.landmarks.add(lm.track_id)
+                if j != i:
+                    for factor in landmark_factors(first, j, self.rig, self.config):
+                        update.factors.push_back(factor)
             for factor in landmark_factors(lm, i, self.rig, self.config):
                 update.factors.push_back(factor)
+            self._sightings[lm.track_id] = self._sightings.get(lm.track_id, 1) + 1
             observed += 1
         if (m.ring is not None and observed) or observed >= 3:
             self.full_frames += 1

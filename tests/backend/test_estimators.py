@@ -31,7 +31,7 @@ from satpose.backend.pose3 import exp, local_error, tangent
 from satpose.datasets.config import from_plain
 from satpose.datasets.errors import ConfigError
 from satpose.datasets.geometry import Rigid3, rotation_angle
-from satpose.frontend.measurements import FrameMeasurements
+from satpose.frontend.measurements import FrameMeasurements, LandmarkKind, LandmarkMeasurement
 
 FRAMES = 30
 
@@ -380,3 +380,99 @@ def test_inner_and_outer_edge_get_their_own_radius(name: str, cases) -> None:  #
             assert np.all(pos < chi2.ppf(0.999, 3)), pos.max()
     shared = np.linalg.norm(errors[0.99][:, 3:], axis=1).mean()
     assert shared > 10 * np.linalg.norm(errors[0.04][:, 3:], axis=1).mean()
+
+
+# --------------------------------------------------------------------------------------------
+# Landmarks in the tight graph
+# --------------------------------------------------------------------------------------------
+
+
+def _with_orb(case, tracks: dict[int, np.ndarray], seed: int) -> list[FrameMeasurements]:  # type: ignore[no-untyped-def]
+    """The case's measurements plus ORB tracks: track id -> (N, 3) target-frame point per frame
+    (NaN where the track is not seen), observed with 0.8 px noise in both images."""
+    rng = np.random.default_rng(seed)
+    calib = case.calib
+    assert calib.right is not None and calib.right_from_left is not None
+    out = []
+    for k, (m, T) in enumerate(zip(case.measurements, case.poses, strict=True)):
+        extra = []
+        for tid, pts in tracks.items():
+            if not np.all(np.isfinite(pts[k])):
+                continue
+            P = T.apply(pts[k])
+            pl = calib.left.K @ P
+            pr = calib.right.K @ calib.right_from_left.apply(P)
+            extra.append(
+                LandmarkMeasurement(
+                    track_id=tid,
+                    kind=LandmarkKind.ORB,
+                    left_px=pl[:2] / pl[2] + rng.normal(0, 0.8, 2),
+                    right_px=pr[:2] / pr[2] + rng.normal(0, 0.8, 2),
+                    sigma_px=0.8,
+                    point_m=P + rng.normal(0, 0.01, 3),
+                    covariance=np.eye(3) * 1e-4,
+                )
+            )
+        out.append(replace(m, landmarks=m.landmarks + tuple(extra)))
+    return out
+
+
+def _panel_points(rng: np.random.Generator, n: int) -> np.ndarray:
+    return np.c_[rng.uniform(-0.5, 0.5, (n, 2)), np.full(n, -0.1)]
+
+
+def test_landmarks_seen_once_stay_out_of_the_graph(cases) -> None:  # type: ignore[no-untyped-def]
+    """A landmark seen in one frame only carries no information on the pose (its three
+    coordinates absorb the stereo pixels): it waits for its second sighting and, if none
+    comes, never becomes a variable; the smoothed trajectory is the one without it."""
+    case = cases("frontend", "paper-docking", FRAMES, 13)
+    rng = np.random.default_rng(13)
+    tracks = {}
+    for tid in range(5000, 5040):  # 40 single sightings, spread over the sequence
+        pts = np.full((FRAMES, 3), np.nan)
+        pts[(tid * 7) % FRAMES] = _panel_points(rng, 1)[0]
+        tracks[tid] = pts
+    sizes, estimates = {}, {}
+    for label, ms in (("plain", case.measurements), ("with singles", _with_orb(case, tracks, 13))):
+        reports: list[StepReport] = []
+        est = make_estimator("offline", case.calib, _config("tight"), hook=reports.append)
+        for m in ms:
+            est.add(m)
+        estimates[label] = est.estimate()
+        sizes[label] = reports[-1].variables
+    assert sizes["with singles"] == sizes["plain"]
+    a, b = estimates["plain"], estimates["with singles"]
+    for i in range(FRAMES):
+        d = local_error(a.left_cam_from_target[i], b.left_cam_from_target[i])
+        assert np.all(np.abs(d) < 1e-6 * a.pose_sigmas()[i])
+
+
+def test_orb_tracks_are_capped_per_frame_longest_first(cases) -> None:  # type: ignore[no-untyped-def]
+    """With ``max_orb_per_frame = K`` a frame contributes at most K ORB tracks, the anchor
+    and the longest-tracked first, so the same K long tracks carry through the sequence; the
+    estimate stays consistent."""
+    case = cases("frontend", "tumble", FRAMES, 17)
+    rng = np.random.default_rng(17)
+    tracks = {}
+    for tid in range(6000, 6012):  # 12 tracks through the whole sequence
+        tracks[tid] = np.tile(_panel_points(rng, 1)[0], (FRAMES, 1))
+    for tid in range(7000, 7030):  # 30 tracks of 3 frames each
+        pts = np.full((FRAMES, 3), np.nan)
+        start = (tid * 5) % (FRAMES - 3)
+        pts[start : start + 3] = _panel_points(rng, 1)[0]
+        tracks[tid] = pts
+    ms = _with_orb(case, tracks, 17)
+    K = 4
+    cfg = BackendConfig(measurements=MeasurementConfig(max_orb_per_frame=K))
+    est = make_estimator("offline", case.calib, cfg)
+    assert isinstance(est, OfflineEstimator)
+    for m in ms:
+        est.add(m)
+    out = est.estimate()
+    in_graph = est.builder.landmarks
+    orb = {t for t in in_graph if t >= 6000}
+    # the first frame's K lowest long tracks win and keep winning (most sightings)
+    assert orb == set(range(6000, 6000 + K))
+    e, _ = _errors(out, case)
+    pose_nees = _nees(e, out.pose_covariance)
+    assert np.all(pose_nees < chi2.ppf(0.999, 6)), pose_nees.max()
