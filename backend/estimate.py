@@ -139,7 +139,8 @@ class StepReport:
         step: ``add`` (one frame added) or ``optimize`` (batch solve).
         frame: the frame just added (``add``) or the last frame (``optimize``).
         timings_ms: wall time per stage [ms] (e.g. ``build``, ``update``, ``marginals``,
-            ``python_factors`` = time spent inside Python factors during the step).
+            ``python_factors`` = time spent inside Python factors during the step); a stage
+            ending in ``_cpu`` is the process's CPU time instead (``update_cpu``).
         factors, variables: graph size after the step (0 for the Kalman filter).
         new_factors: factors added by the step.
         iterations: optimizer iterations (``optimize``), or None.

@@ -14,15 +14,24 @@ Loosely coupled (``coupling = "loose"``):
 Tightly coupled (``coupling = "tight"``):
 
 - `ring_factor` (Python `gtsam.CustomFactor`, analytic Jacobians): the ring's 3-D circle,
-  fitted by the frontend to the edge points of both images: ``e = [t - c ; B^T R e_z ;
-  rho - r]`` (6,) where ``(R, t) = T``, ``c``, ``n``, ``r`` are the measured centre, normal and
-  radius, ``B`` (3x2) a tangent basis of ``n``, and ``rho`` the ring-radius variable shared by
-  all frames (``R(0)``). The target origin is the ring centre and its z axis the ring normal,
-  so this factor also fixes five of the six gauge freedoms. Covariance: the frontend's 7x7
-  ``[centre, normal, radius]`` covariance with the normal block projected on ``B``. Sharing
-  the radius is what a factor on the two image conics adds over independent per-frame
-  circles (the ring's apparent size fixes depth); the per-frame circle is the Gauss-Newton
-  summary of the edge points, so the information is the same to first order.
+  fitted by the frontend to the edge points of both images, its centre and normal:
+  ``e = [t - c ; B^T R e_z]`` (5,) where ``(R, t) = T``, ``c``, ``n`` are the measured centre
+  and normal and ``B`` (3x2) a tangent basis of ``n``. The target origin is the ring centre and
+  its z axis the ring normal, so this factor also fixes five of the six gauge freedoms.
+  Covariance: the frontend's covariance of ``[centre, normal]`` with the normal block projected
+  on ``B``.
+- `ring_radius_factor` (Python): the measured radius ``r`` against the radius variable
+  ``rho = R(k)`` of the circle it belongs to, *conditioned* on the centre and normal residual:
+  ``e = (rho - r) - K^T e_cn`` with ``K = C_cn^-1 C_cn,r`` and variance
+  ``C_rr - C_r,cn C_cn^-1 C_cn,r`` (``C`` the 6x6 covariance of ``[centre, B^T normal,
+  radius]``). Without robust kernel the two factors' costs add up exactly to that of the joint
+  6-D Gaussian (marginal times conditional); with one, a radius that disagrees (a biased edge,
+  another circle) loses its own weight without taking the circle's centre and normal along.
+  Sharing the radius over frames is what a factor on the two image conics adds over
+  independent per-frame circles (the ring's apparent size fixes depth); the per-frame circle
+  is the Gauss-Newton summary of the edge points, so the information is the same to first
+  order. The rim shows several concentric circles (outer and inner front edge, ~13% apart):
+  the graph keeps one radius variable per circle (`satpose.backend.graph`).
 - `landmark_factors`: a tracked point ``p = L(j)`` (target frame, a variable) observed in the
   undistorted left and right images: two GTSAM C++ ``GenericProjectionFactorCal3_S2`` on
   ``(X(i), L(j))`` (the right one with ``body_P_sensor = left_from_right``; the rig is not
@@ -44,7 +53,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from satpose.backend.errors import BackendError
-from satpose.backend.keys import RADIUS, L, X
+from satpose.backend.keys import L, R, X
 from satpose.backend.pose3 import (
     ROT,
     TRANS,
@@ -80,8 +89,20 @@ class MeasurementConfig:
             ``sqrt(chi2.ppf(robust_quantile, dim))`` for a factor of dimension ``dim``, so an
             inlier is down-weighted with probability ``1 - robust_quantile`` whatever the
             factor's size.
-        ring_radius: estimate one ring radius shared by all frames (tight only).
+        ring_radius: estimate the ring's radius, one variable per circle shared by every frame
+            that measured that circle (tight only); without it only the centre and normal are
+            used.
+        ring_circle_gap: a ring whose radius differs from every circle seen so far by more than
+            this fraction is another circle of the rim and gets its own radius variable. The
+            rim's front edges are ``(outer - inner) / outer`` apart (13% on the presets), the
+            frontend's radius of one edge varies by < 1% (0.7% over paper-docking's 7 m to
+            3 m); 4% is also the frontend's own limit (``StereoRingConfig.max_radius_change``).
         landmark_kinds: landmark kinds used in tight coupling.
+        max_orb_per_frame: at most this many ORB landmarks per frame become factors (None: all):
+            the anchor, then the longest-tracked. ORB tracks are many (up to 360 per frame on
+            `tumble`) and short, each one a variable: they dominate iSAM2's cost, and beyond
+            ~20 per frame they did not improve the estimate of the rendered sequences
+            (docs/backend.md).
         anchor_min_axis_distance_m: a landmark closer than this to the ring axis cannot fix
             the x axis (same rule as the frontend's ``PoseConfig.min_axis_distance_m``).
         gauge_sigma_m: standard deviation of the anchor's ``y = 0`` constraint [m]
@@ -99,6 +120,8 @@ class MeasurementConfig:
     )
     anchor_min_axis_distance_m: float = 0.08
     gauge_sigma_m: float = 1e-6
+    ring_circle_gap: float = 0.04
+    max_orb_per_frame: int | None = 20
 
     def __post_init__(self) -> None:
         if self.coupling not in ("loose", "tight"):
@@ -109,6 +132,10 @@ class MeasurementConfig:
             raise BackendError(f"robust_quantile must be in (0.5, 1), got {self.robust_quantile}")
         if not (self.gauge_sigma_m > 0 and self.anchor_min_axis_distance_m >= 0):
             raise BackendError("gauge_sigma_m must be positive, anchor distance non-negative")
+        if not 0 < self.ring_circle_gap < 1:
+            raise BackendError(f"ring_circle_gap must be in (0, 1), got {self.ring_circle_gap}")
+        if self.max_orb_per_frame is not None and self.max_orb_per_frame < 0:
+            raise BackendError(f"max_orb_per_frame must be >= 0, got {self.max_orb_per_frame}")
         object.__setattr__(
             self, "landmark_kinds", tuple(LandmarkKind(k) for k in self.landmark_kinds)
         )
@@ -200,50 +227,84 @@ def ring_covariance(m: RingMeasurement, with_radius: bool) -> np.ndarray:
     return 0.5 * (C + C.T)
 
 
-def ring_factor(
-    m: RingMeasurement, i: int, config: MeasurementConfig, clock: FactorClock | None = None
-) -> gtsam.CustomFactor:
-    """The ring's centre, normal (and radius) at state ``i`` (see the module docstring).
+def _centre_normal(
+    Xp: gtsam.Pose3, c: np.ndarray, B: np.ndarray, jacobian: bool
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """``e = [t - c ; B^T n]`` (5,) and its Jacobian (5x6) w.r.t. ``X``'s right perturbation.
 
     With ``X = T^-1``: ``t = -R_X^T t_X`` and ``R e_z = R_X^T e_z =: n``; for ``X Exp(d)``,
     ``dt/d(theta) = [t]x``, ``dt/d(rho) = -I``, ``dn/d(theta) = [n]x``.
     """
+    Rx = Xp.rotation().matrix()
+    t = -Rx.T @ Xp.translation()
+    n = Rx[2]  # R_X^T e_z
+    e = np.empty(5)
+    e[0:3] = t - c
+    e[3:5] = B.T @ n
+    if not jacobian:
+        return e, None
+    H = np.zeros((5, 6))
+    H[0:3, ROT] = skew(t)
+    H[0:3, TRANS] = -np.eye(3)
+    H[3:5, ROT] = B.T @ skew(n)
+    return e, H
+
+
+def ring_factor(
+    m: RingMeasurement, i: int, config: MeasurementConfig, clock: FactorClock | None = None
+) -> gtsam.CustomFactor:
+    """The ring's centre and normal at state ``i`` (see the module docstring)."""
     c = np.asarray(m.center_m, float)
     B = tangent_basis(m.normal)
-    r = float(m.radius_m)
-    with_radius = config.ring_radius
-    dim = 6 if with_radius else 5
-    keys = [X(i), RADIUS] if with_radius else [X(i)]
-    minus_eye = -np.eye(3)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
         t0 = clock.start() if clock is not None else 0.0
-        ks = this.keys()
-        Xp = values.atPose3(ks[0])
-        Rx = Xp.rotation().matrix()
-        t = -Rx.T @ Xp.translation()
-        n = Rx[2]  # R_X^T e_z
-        e = np.empty(dim)
-        e[0:3] = t - c
-        e[3:5] = B.T @ n
-        if with_radius:
-            e[5] = values.atVector(ks[1])[0] - r
+        e, Hx = _centre_normal(values.atPose3(this.keys()[0]), c, B, H is not None)
         if H is not None:
-            Hx = np.zeros((dim, 6), order="F")
-            Hx[0:3, ROT] = skew(t)
-            Hx[0:3, TRANS] = minus_eye
-            Hx[3:5, ROT] = B.T @ skew(n)
-            H[0] = Hx
-            if with_radius:
-                Hr = np.zeros((dim, 1), order="F")
-                Hr[5, 0] = 1.0
-                H[1] = Hr
+            H[0] = np.asfortranarray(Hx)
         if clock is not None:
             clock.stop(t0)
         return e
 
-    noise = robust(gaussian(ring_covariance(m, with_radius)), dim, config)
-    return gtsam.CustomFactor(noise, keys, error)
+    noise = robust(gaussian(ring_covariance(m, with_radius=False)), 5, config)
+    return gtsam.CustomFactor(noise, [X(i)], error)
+
+
+def ring_radius_factor(
+    m: RingMeasurement,
+    i: int,
+    circle: int,
+    config: MeasurementConfig,
+    clock: FactorClock | None = None,
+) -> gtsam.CustomFactor:
+    """The ring's radius at state ``i`` against the radius variable ``R(circle)``, conditioned
+    on the centre and normal (see the module docstring): ``e = (rho - r) - K^T e_cn``,
+    ``de/dX = -K^T de_cn/dX``, ``de/drho = 1``."""
+    c = np.asarray(m.center_m, float)
+    B = tangent_basis(m.normal)
+    r = float(m.radius_m)
+    C = ring_covariance(m, with_radius=True)
+    K = np.linalg.solve(C[:5, :5], C[:5, 5])
+    variance = float(C[5, 5] - C[5, :5] @ K)
+    if not variance > 0:
+        raise BackendError("ring covariance: the radius is determined by the centre and normal")
+    H_rho = np.asfortranarray(np.ones((1, 1)))
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
+        t0 = clock.start() if clock is not None else 0.0
+        ks = this.keys()
+        e_cn, Hx = _centre_normal(values.atPose3(ks[0]), c, B, H is not None)
+        e = np.array([values.atVector(ks[1])[0] - r - K @ e_cn])
+        if H is not None:
+            assert Hx is not None
+            H[0] = np.asfortranarray(-(K @ Hx)[None, :])
+            H[1] = H_rho
+        if clock is not None:
+            clock.stop(t0)
+        return e
+
+    noise = robust(gtsam.noiseModel.Isotropic.Sigma(1, math.sqrt(variance)), 1, config)
+    return gtsam.CustomFactor(noise, [X(i), R(circle)], error)
 
 
 def landmark_factors(

@@ -2,7 +2,7 @@
 
 States: ``X(i)`` (``target_from_left_cam``, see `satpose.backend.pose3`) and ``V(i)`` (body
 twist) for the ``i``-th frame added; in tight coupling also ``L(j)`` (landmarks, target frame)
-and ``R(0)`` (ring radius).
+and ``R(k)`` (the radius of each circle of the ring the frontend measured).
 
 The graph starts at the first frame that can fix the target frame — one with a pose (loose
 coupling) or with the ring and a landmark usable as the x-axis anchor (tight coupling).
@@ -23,6 +23,7 @@ from scipy.stats import chi2
 
 from satpose.backend.errors import BackendError
 from satpose.backend.factors import (
+    KIND_PRIORITY,
     FactorClock,
     MeasurementConfig,
     StereoRig,
@@ -32,8 +33,9 @@ from satpose.backend.factors import (
     landmark_factors,
     pose_factor,
     ring_factor,
+    ring_radius_factor,
 )
-from satpose.backend.keys import RADIUS, L, V, X
+from satpose.backend.keys import L, R, V, X
 from satpose.backend.motion import (
     MotionConfig,
     constant_twist_factor,
@@ -45,7 +47,7 @@ from satpose.backend.motion import (
 from satpose.backend.pose3 import local_error, to_state
 from satpose.datasets.geometry import Rigid3
 from satpose.datasets.sequence import Calibration
-from satpose.frontend.measurements import FrameMeasurements
+from satpose.frontend.measurements import FrameMeasurements, LandmarkKind, LandmarkMeasurement
 
 
 @dataclass
@@ -84,7 +86,10 @@ class GraphBuilder:
         self.start: int | None = None  # index of the frame that started the graph
         self.anchor: int | None = None
         self.landmarks: set[int] = set()
-        self.radius_initialized = False
+        # landmarks seen once, not yet in the graph: track id -> (state index, sighting)
+        self._first_sightings: dict[int, tuple[int, LandmarkMeasurement]] = {}
+        self._sightings: dict[int, int] = {}  # sightings of the landmarks in the graph
+        self.circles: list[list[float]] = []  # the radii measured of each circle of the ring
         self.full_frames = 0  # frames whose measurements fix a whole pose
         self._pending: list[FrameMeasurements] = []
         self._hint: dict[int, tuple[Rigid3, np.ndarray]] = {}
@@ -168,7 +173,7 @@ class GraphBuilder:
         self._new_state(i, pose, twist, update)
         update.factors.push_back(constant_twist_factor(i - 1, i, dt, self.motion, self.clock))
         n = update.factors.size()
-        self._measurement_factors(i, m, pose, update)
+        self._measurement_factors(i, m, update)
         if update.factors.size() == n:
             update.notes.append("prediction only")
         return update
@@ -224,9 +229,9 @@ class GraphBuilder:
             dt = self.t_s[j + 1] - self.t_s[j]
             update.factors.push_back(constant_twist_factor(j, j + 1, dt, self.motion, self.clock))
         for j, pending in enumerate(self._pending):
-            self._measurement_factors(j, pending, pose, update)
+            self._measurement_factors(j, pending, update)
         self._pending = []
-        self._measurement_factors(i, m, pose, update)
+        self._measurement_factors(i, m, update)
         if i:
             update.notes.append(f"started: {i} earlier frame(s) tied by the motion prior")
 
@@ -236,9 +241,26 @@ class GraphBuilder:
         update.created.append(i)
         self._hint[i] = (pose, np.asarray(twist, float))
 
-    def _measurement_factors(
-        self, i: int, m: FrameMeasurements, pose: Rigid3, update: GraphUpdate
-    ) -> None:
+    def _landmark_priority(self, lm: LandmarkMeasurement) -> tuple[int, int, int, int]:
+        """Sort key of a frame's landmarks (for `MeasurementConfig.max_orb_per_frame`): the
+        anchor, then by kind (corners, components, ORB), the most sightings so far, track id."""
+        seen = self._sightings.get(lm.track_id, int(lm.track_id in self._first_sightings))
+        return (lm.track_id != self.anchor, KIND_PRIORITY[lm.kind], -seen, lm.track_id)
+
+    def _circle(self, radius_m: float) -> int:
+        """The circle of the ring a measured radius belongs to: the known circle whose median
+        radius is nearest, if within ``ring_circle_gap`` (relative); else a new one
+        (``len(self.circles)``). The rim's edges are concentric and coplanar (its front face),
+        so only the radius tells them apart; the centre and normal are shared."""
+        best, best_gap = len(self.circles), self.config.ring_circle_gap
+        for k, radii in enumerate(self.circles):
+            ref = float(np.median(radii))
+            gap = abs(radius_m - ref) / ref
+            if gap <= best_gap:
+                best, best_gap = k, gap
+        return best
+
+    def _measurement_factors(self, i: int, m: FrameMeasurements, update: GraphUpdate) -> None:
         if self.config.coupling == "loose":
             if m.pose is not None:
                 update.factors.push_back(pose_factor(m.pose, i, self.config))
@@ -246,21 +268,49 @@ class GraphBuilder:
             return
         observed = 0
         if m.ring is not None:
-            if self.config.ring_radius and not self.radius_initialized:
-                update.values.insert(RADIUS, np.array([m.ring.radius_m]))
-                self.radius_initialized = True
             update.factors.push_back(ring_factor(m.ring, i, self.config, self.clock))
-        target_from_cam = pose.inverse()
-        for lm in m.landmarks:
+            if self.config.ring_radius:
+                k = self._circle(m.ring.radius_m)
+                if k == len(self.circles):
+                    self.circles.append([])
+                    update.values.insert(R(k), np.array([m.ring.radius_m]))
+                    if k:
+                        update.notes.append(
+                            f"ring: another circle of the rim, radius {m.ring.radius_m:.4f} m"
+                        )
+                self.circles[k].append(float(m.ring.radius_m))
+                update.factors.push_back(ring_radius_factor(m.ring, i, k, self.config, self.clock))
+        orb_left = self.config.max_orb_per_frame
+        for lm in sorted(m.landmarks, key=self._landmark_priority):
             if lm.kind not in self.config.landmark_kinds:
                 continue
-            if lm.track_id not in self.landmarks:
-                if lm.point_m is None:
-                    continue  # a left-only sighting cannot place a new landmark
-                update.values.insert(L(lm.track_id), target_from_cam.apply(lm.point_m))
+            known = lm.track_id in self.landmarks
+            if not known and lm.track_id not in self._first_sightings:
+                # a first sighting: kept aside (one stereo sighting says nothing about the
+                # pose: the point's three coordinates absorb it), except for the anchor
+                if lm.point_m is not None:
+                    self._first_sightings[lm.track_id] = (i, lm)
+                if lm.track_id != self.anchor or lm.point_m is None:
+                    continue
+            if lm.kind == LandmarkKind.ORB and lm.track_id != self.anchor and orb_left is not None:
+                if orb_left <= 0:
+                    continue
+                orb_left -= 1
+            if not known:
+                # second sighting (or the anchor): the landmark enters the graph, with its
+                # first sighting, initialised there from the current pose of that frame
+                j, first = self._first_sightings.pop(lm.track_id)
+                assert first.point_m is not None
+                update.values.insert(
+                    L(lm.track_id), self._hint[j][0].inverse().apply(first.point_m)
+                )
                 self.landmarks.add(lm.track_id)
+                if j != i:
+                    for factor in landmark_factors(first, j, self.rig, self.config):
+                        update.factors.push_back(factor)
             for factor in landmark_factors(lm, i, self.rig, self.config):
                 update.factors.push_back(factor)
+            self._sightings[lm.track_id] = self._sightings.get(lm.track_id, 1) + 1
             observed += 1
         if (m.ring is not None and observed) or observed >= 3:
             self.full_frames += 1

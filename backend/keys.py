@@ -4,7 +4,9 @@
   (Pose3; the inverse of the ``left_cam_from_target`` the backend reports, see `pose3`).
 - ``V(k)``: body twist ``[omega, v]`` of the target at frame ``k`` (6-vector, target frame).
 - ``L(j)``: landmark with track id ``j`` in the target frame (3-vector) [m].
-- ``R(0)``: the docking ring's radius (1-vector) [m], shared by all frames.
+- ``R(k)``: the radius (1-vector) [m] of the ``k``-th circle of the docking ring the frontend
+  has measured, shared by every frame that measured that circle (the rim's outer and inner
+  front edges are concentric circles of different radii; the frontend may track either).
 """
 
 from __future__ import annotations
@@ -12,9 +14,10 @@ from __future__ import annotations
 import gtsam
 from gtsam.symbol_shorthand import L, R, V, X
 
-__all__ = ["LANDMARK_CHAR", "POSE_CHAR", "RADIUS", "RADIUS_CHAR", "TWIST_CHAR", "L", "V", "X"]
+__all__ = ["LANDMARK_CHAR", "POSE_CHAR", "RADIUS", "RADIUS_CHAR", "TWIST_CHAR", "L", "R", "V", "X"]
 
 RADIUS = R(0)
+"""The first circle's radius."""
 
 # The symbol characters (per-type settings such as iSAM2's relinearisation thresholds).
 POSE_CHAR = chr(gtsam.Symbol(X(0)).chr())

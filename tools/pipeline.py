@@ -13,8 +13,8 @@ replaced only with ``overwrite``, stays as it was):
 - ``measurements.parquet``: the frontend's measurements (tools.files).
 - ``timings.csv``: per frame and stage [ms]: ``frontend_<stage>``, ``frontend_total``, each
   estimator's ``add()`` (``backend_<name>``) and its own stages (``backend_<name>_<stage>``,
-  e.g. ``backend_online_update``: iSAM2's update). Wall clock: with run.rrd the only output
-  that varies run to run.
+  e.g. ``backend_online_update``: iSAM2's update). Wall clock (``..._cpu``: the process's CPU
+  time): with run.rrd the only output that varies run to run.
 - ``config.yaml``: the resolved configuration; ``run.yaml``: provenance (sequence, estimator).
 - ``run.rrd``: the Rerun recording (tools.recording).
 """

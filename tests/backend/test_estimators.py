@@ -22,6 +22,7 @@ from satpose.backend import (
     BackendConfig,
     BackendError,
     Estimate,
+    Isam2Config,
     MeasurementConfig,
     OfflineEstimator,
     StepReport,
@@ -31,7 +32,7 @@ from satpose.backend.pose3 import exp, local_error, tangent
 from satpose.datasets.config import from_plain
 from satpose.datasets.errors import ConfigError
 from satpose.datasets.geometry import Rigid3, rotation_angle
-from satpose.frontend.measurements import FrameMeasurements
+from satpose.frontend.measurements import FrameMeasurements, LandmarkKind, LandmarkMeasurement
 
 FRAMES = 30
 
@@ -160,6 +161,50 @@ def test_batch_and_final_isam2_agree(cases) -> None:  # type: ignore[no-untyped-
                 assert np.all(np.abs(dt) < tol * batch.twist_sigmas()[i]), (robust, coupling, i)
             np.testing.assert_allclose(final.pose_sigmas(), batch.pose_sigmas(), rtol=sigma_rtol)
             np.testing.assert_allclose(final.twist_sigmas(), batch.twist_sigmas(), rtol=sigma_rtol)
+
+
+def test_relinearisation_window_holds_old_variables_and_keeps_the_estimates(cases) -> None:  # type: ignore[no-untyped-def]
+    """``relinearize_window``: old states, landmarks and radii keep their linearisation point
+    during the online loop, so iSAM2 relinearises fewer variables (measured 624 against 769
+    over 30 frames); the filtered estimates move by a fraction of their sigma (measured at
+    most 0.45 pose / 0.64 twist sigma; the one-Gauss-Newton-step filter is itself 0.5-0.9
+    sigma from the batch optimum of the same frames, window or not); `estimate` relinearises
+    everything, so even a window of 0 without the escape bound ends at the batch solution
+    (same 0.2-sigma tier as above)."""
+    case = cases("frontend", "tumble", FRAMES, 3)
+    runs = {}
+    for label, online in (
+        ("all", Isam2Config(relinearize_window=None)),
+        ("window", Isam2Config()),
+        ("frozen", Isam2Config(relinearize_window=0, held_relinearize_factor=1e6)),
+    ):
+        reports: list[StepReport] = []
+        est = make_estimator("online", case.calib, BackendConfig(online=online), reports.append)
+        for m in case.measurements:
+            est.add(m)
+        relinearized = sum(r.relinearized or 0 for r in reports if r.step == "add")
+        runs[label] = (est.filtered(), est.estimate(), relinearized)  # type: ignore[union-attr]
+    assert runs["window"][2] < 0.9 * runs["all"][2]
+    assert runs["frozen"][2] < runs["window"][2]
+    a, b = runs["all"][0], runs["window"][0]
+    d = np.array(
+        [
+            local_error(p, q)
+            for p, q in zip(a.left_cam_from_target, b.left_cam_from_target, strict=True)
+        ]
+    )
+    assert np.max(np.abs(d) / a.pose_sigmas()) < 1.0
+    assert np.median(np.max(np.abs(d) / a.pose_sigmas(), axis=1)) < 0.25
+    assert np.max(np.abs(a.twist - b.twist) / a.twist_sigmas()) < 1.0
+    batch = _run("offline", case, BackendConfig()).estimate()
+    for label in ("window", "frozen"):
+        final = runs[label][1]
+        for i in range(FRAMES):
+            d_i = local_error(batch.left_cam_from_target[i], final.left_cam_from_target[i])
+            assert np.all(np.abs(d_i) < 0.2 * batch.pose_sigmas()[i]), (label, i)
+            dv = final.twist[i] - batch.twist[i]
+            assert np.all(np.abs(dv) < 0.2 * batch.twist_sigmas()[i]), (label, i)
+        np.testing.assert_allclose(final.pose_sigmas(), batch.pose_sigmas(), rtol=0.05)
 
 
 # --------------------------------------------------------------------------------------------
@@ -319,6 +364,10 @@ def test_config_loads_by_key_and_rejects_unknown_keys() -> None:
         from_plain(BackendConfig, {"motion": {"spin": 1.0}})
     with pytest.raises(ConfigError, match="positive"):
         from_plain(BackendConfig, {"motion": {"linear_accel_noise_m_s2_rthz": -1.0}})
+    with pytest.raises(ConfigError, match="held_relinearize_factor"):
+        from_plain(BackendConfig, {"online": {"held_relinearize_factor": 0.5}})
+    with pytest.raises(ConfigError, match="relinearize_window"):
+        from_plain(BackendConfig, {"online": {"relinearize_window": -1}})
     with pytest.raises(BackendError, match="unknown estimator"):
         make_estimator("ekf", None)  # type: ignore[arg-type]
 
@@ -341,3 +390,138 @@ def test_hook_reports_every_step(cases) -> None:  # type: ignore[no-untyped-def]
             assert all(r.factors > 0 and r.relinearized is not None for r in adds[1:])
         if name == "offline":
             assert [r.step for r in reports][-1] == "optimize" and reports[-1].iterations
+
+
+# --------------------------------------------------------------------------------------------
+# The ring's circles
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["offline", "online"])
+def test_inner_and_outer_edge_get_their_own_radius(name: str, cases) -> None:  # type: ignore[no-untyped-def]
+    """The frontend may track the rim's inner front edge first (as on the rendered `tumble`)
+    and the outer one later: concentric, coplanar, 13% smaller. Each circle gets its own
+    radius variable, so the estimate stays consistent even without a robust kernel; one radius
+    shared by both circles drags the depth by decimetres."""
+    case = cases("frontend", "tumble", FRAMES, 11)
+    inner = 0.26 / 0.30
+    ms = [
+        replace(m, ring=replace(m.ring, radius_m=m.ring.radius_m * inner))
+        if m.frame < 6 and m.ring is not None
+        else m
+        for m in case.measurements
+    ]
+    errors = {}
+    for gap in (0.04, 0.99):  # 0.99: every ring is taken as the same circle
+        cfg = BackendConfig(measurements=MeasurementConfig(robust="none", ring_circle_gap=gap))
+        reports: list[StepReport] = []
+        est = make_estimator(name, case.calib, cfg, hook=reports.append)  # type: ignore[arg-type]
+        for m in ms:
+            est.add(m)
+        out = est.estimate()
+        e, _ = _errors(out, case)
+        errors[gap] = e
+        if gap == 0.04:
+            new_circle = [r.frame for r in reports if any("another circle" in n for n in r.notes)]
+            assert new_circle == [6]
+            # each frame's position within its own covariance (chi2(3), 99.9%)
+            pos = _nees(e[:, 3:], out.pose_covariance[:, 3:, 3:])
+            assert np.all(pos < chi2.ppf(0.999, 3)), pos.max()
+    shared = np.linalg.norm(errors[0.99][:, 3:], axis=1).mean()
+    assert shared > 10 * np.linalg.norm(errors[0.04][:, 3:], axis=1).mean()
+
+
+# --------------------------------------------------------------------------------------------
+# Landmarks in the tight graph
+# --------------------------------------------------------------------------------------------
+
+
+def _with_orb(case, tracks: dict[int, np.ndarray], seed: int) -> list[FrameMeasurements]:  # type: ignore[no-untyped-def]
+    """The case's measurements plus ORB tracks: track id -> (N, 3) target-frame point per frame
+    (NaN where the track is not seen), observed with 0.8 px noise in both images."""
+    rng = np.random.default_rng(seed)
+    calib = case.calib
+    assert calib.right is not None and calib.right_from_left is not None
+    out = []
+    for k, (m, T) in enumerate(zip(case.measurements, case.poses, strict=True)):
+        extra = []
+        for tid, pts in tracks.items():
+            if not np.all(np.isfinite(pts[k])):
+                continue
+            P = T.apply(pts[k])
+            pl = calib.left.K @ P
+            pr = calib.right.K @ calib.right_from_left.apply(P)
+            extra.append(
+                LandmarkMeasurement(
+                    track_id=tid,
+                    kind=LandmarkKind.ORB,
+                    left_px=pl[:2] / pl[2] + rng.normal(0, 0.8, 2),
+                    right_px=pr[:2] / pr[2] + rng.normal(0, 0.8, 2),
+                    sigma_px=0.8,
+                    point_m=P + rng.normal(0, 0.01, 3),
+                    covariance=np.eye(3) * 1e-4,
+                )
+            )
+        out.append(replace(m, landmarks=m.landmarks + tuple(extra)))
+    return out
+
+
+def _panel_points(rng: np.random.Generator, n: int) -> np.ndarray:
+    return np.c_[rng.uniform(-0.5, 0.5, (n, 2)), np.full(n, -0.1)]
+
+
+def test_landmarks_seen_once_stay_out_of_the_graph(cases) -> None:  # type: ignore[no-untyped-def]
+    """A landmark seen in one frame only carries no information on the pose (its three
+    coordinates absorb the stereo pixels): it waits for its second sighting and, if none
+    comes, never becomes a variable; the smoothed trajectory is the one without it."""
+    case = cases("frontend", "paper-docking", FRAMES, 13)
+    rng = np.random.default_rng(13)
+    tracks = {}
+    for tid in range(5000, 5040):  # 40 single sightings, spread over the sequence
+        pts = np.full((FRAMES, 3), np.nan)
+        pts[(tid * 7) % FRAMES] = _panel_points(rng, 1)[0]
+        tracks[tid] = pts
+    sizes, estimates = {}, {}
+    for label, ms in (("plain", case.measurements), ("with singles", _with_orb(case, tracks, 13))):
+        reports: list[StepReport] = []
+        est = make_estimator("offline", case.calib, _config("tight"), hook=reports.append)
+        for m in ms:
+            est.add(m)
+        estimates[label] = est.estimate()
+        sizes[label] = reports[-1].variables
+    assert sizes["with singles"] == sizes["plain"]
+    a, b = estimates["plain"], estimates["with singles"]
+    for i in range(FRAMES):
+        d = local_error(a.left_cam_from_target[i], b.left_cam_from_target[i])
+        assert np.all(np.abs(d) < 1e-6 * a.pose_sigmas()[i])
+
+
+def test_orb_tracks_are_capped_per_frame_longest_first(cases) -> None:  # type: ignore[no-untyped-def]
+    """With ``max_orb_per_frame = K`` a frame contributes at most K ORB tracks, the anchor
+    and the longest-tracked first, so the same K long tracks carry through the sequence; the
+    estimate stays consistent."""
+    case = cases("frontend", "tumble", FRAMES, 17)
+    rng = np.random.default_rng(17)
+    tracks = {}
+    for tid in range(6000, 6012):  # 12 tracks through the whole sequence
+        tracks[tid] = np.tile(_panel_points(rng, 1)[0], (FRAMES, 1))
+    for tid in range(7000, 7030):  # 30 tracks of 3 frames each
+        pts = np.full((FRAMES, 3), np.nan)
+        start = (tid * 5) % (FRAMES - 3)
+        pts[start : start + 3] = _panel_points(rng, 1)[0]
+        tracks[tid] = pts
+    ms = _with_orb(case, tracks, 17)
+    K = 4
+    cfg = BackendConfig(measurements=MeasurementConfig(max_orb_per_frame=K))
+    est = make_estimator("offline", case.calib, cfg)
+    assert isinstance(est, OfflineEstimator)
+    for m in ms:
+        est.add(m)
+    out = est.estimate()
+    in_graph = est.builder.landmarks
+    orb = {t for t in in_graph if t >= 6000}
+    # the first frame's K lowest long tracks win and keep winning (most sightings)
+    assert orb == set(range(6000, 6000 + K))
+    e, _ = _errors(out, case)
+    pose_nees = _nees(e, out.pose_covariance)
+    assert np.all(pose_nees < chi2.ppf(0.999, 6)), pose_nees.max()

@@ -18,6 +18,7 @@ from satpose.backend.factors import (
     pose_factor,
     ring_covariance,
     ring_factor,
+    ring_radius_factor,
 )
 from satpose.backend.keys import RADIUS, L, X
 from satpose.backend.pose3 import exp, to_state
@@ -83,6 +84,8 @@ def test_residuals_vanish_at_the_truth() -> None:
     m = PoseMeasurement(left_cam_from_target=T_TRUE, covariance=np.eye(6) * 1e-4, method="orb")
     assert np.abs(pose_factor(m, 0, NO_ROBUST).unwhitenedError(_values(T_TRUE))).max() < 1e-12
     f = ring_factor(_ring(T_TRUE), 0, NO_ROBUST)
+    assert np.abs(f.unwhitenedError(_values(T_TRUE))).max() < 1e-12
+    f = ring_radius_factor(_ring(T_TRUE), 0, 0, NO_ROBUST)
     assert np.abs(f.unwhitenedError(_values(T_TRUE, radius=0.3))).max() < 1e-12
     for stereo in (True, False):
         fs = landmark_factors(_landmark(T_TRUE, P_TARGET, stereo), 0, RIG, NO_ROBUST)
@@ -105,15 +108,51 @@ def test_pose_factor_covariance_is_mapped_to_the_state() -> None:
         assert f.error(_values(exp(T_TRUE, xi))) == pytest.approx(expected, rel=1e-4)
 
 
-@pytest.mark.parametrize("with_radius", [True, False])
-def test_ring_factor_jacobians(with_radius: bool, jacobians) -> None:  # type: ignore[no-untyped-def]
+def test_ring_factor_jacobians(jacobians) -> None:  # type: ignore[no-untyped-def]
     analytic, numerical = jacobians
-    f = ring_factor(_ring(T_TRUE), 0, MeasurementConfig(robust="none", ring_radius=with_radius))
-    values = _values(T_TRUE @ OFF, radius=0.31 if with_radius else None)
-    J, Jn = analytic(f, values), numerical(f, values)
-    assert J.shape == ((6, 7) if with_radius else (5, 6))
-    # entries up to ~6 (the camera-to-ring lever arm); central differences exact to ~1e-9
-    assert np.abs(J - Jn).max() < 1e-8 * max(1.0, np.abs(Jn).max())
+    for f, values, shape in (
+        (ring_factor(_ring(T_TRUE), 0, NO_ROBUST), _values(T_TRUE @ OFF), (5, 6)),
+        (
+            ring_radius_factor(_ring(T_TRUE), 0, 0, NO_ROBUST),
+            _values(T_TRUE @ OFF, radius=0.31),
+            (1, 7),
+        ),
+    ):
+        J, Jn = analytic(f, values), numerical(f, values)
+        assert J.shape == shape
+        # entries up to ~6 (the camera-to-ring lever arm); central differences exact to ~1e-9
+        assert np.abs(J - Jn).max() < 1e-8 * max(1.0, np.abs(Jn).max())
+
+
+def test_ring_factors_add_up_to_the_joint_gaussian() -> None:
+    """Centre/normal factor + conditional radius factor = the 6-D Gaussian of
+    ``[centre, B^T normal, radius]`` with the frontend's covariance (marginal times
+    conditional), at any state and radius."""
+    ring = _ring(T_TRUE)
+    C = ring_covariance(ring, with_radius=True)
+    cn = ring_factor(ring, 0, NO_ROBUST)
+    rad = ring_radius_factor(ring, 0, 0, NO_ROBUST)
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        T = exp(T_TRUE, rng.normal(size=6) * 3e-3)
+        rho = 0.3 + rng.normal() * 1e-3
+        v = _values(T, radius=rho)
+        e = np.r_[cn.unwhitenedError(v), rho - ring.radius_m]
+        expected = 0.5 * e @ np.linalg.solve(C, e)
+        assert cn.error(v) + rad.error(v) == pytest.approx(expected, rel=1e-9)
+
+
+def test_radius_outlier_keeps_centre_and_normal() -> None:
+    """With the robust kernel, a radius 20 sigma off (another edge of the rim) is down-weighted
+    on its own: the centre/normal factor does not see the radius at all."""
+    cfg = MeasurementConfig()
+    ring = _ring(T_TRUE)
+    rad_sigma = float(np.sqrt(ring.covariance[6, 6]))
+    v = _values(T_TRUE, radius=0.3 + 20 * rad_sigma)
+    assert ring_factor(ring, 0, cfg).error(v) < 1e-12
+    rad = ring_radius_factor(ring, 0, 0, cfg)
+    plain = ring_radius_factor(ring, 0, 0, NO_ROBUST)
+    assert rad.error(v) < 0.25 * plain.error(v)  # Cauchy: far less than quadratic
 
 
 def test_landmark_behind_the_camera_does_not_raise() -> None:
