@@ -231,8 +231,8 @@ class StereoRenderer:
             "irradiance": {"type": "rgb", "value": [lc.intensity] * 3},
         }
 
-    def _move_light(self, target_from_left: Rigid3) -> None:
-        lc = self.scenario.light
+    def _move_light(self, target_from_left: Rigid3, t_s: float) -> None:
+        lc = self.scenario.light.at(t_s)
         if "light.position" in self.params:
             if lc.kind == "point":
                 pos = target_from_left.apply(np.asarray(lc.position_m, float))
@@ -242,9 +242,10 @@ class StereoRenderer:
             self.params["light.to_world"] = self.mi.Transform4f(_look_along(d).tolist())
         self.params.update()
 
-    def exposure_scale(self, left_cam_from_target: Rigid3) -> float:
-        """Radiance -> fraction-of-full-scale factor for this frame (see SensorConfig)."""
-        sc, lc = self.scenario.sensor, self.scenario.light
+    def exposure_scale(self, left_cam_from_target: Rigid3, t_s: float = 0.0) -> float:
+        """Radiance -> fraction-of-full-scale factor for this frame at time ``t_s`` [s] (see
+        SensorConfig; a turning lamp changes its distance to the target)."""
+        sc, lc = self.scenario.sensor, self.scenario.light.at(t_s)
         if sc.exposure == "fixed":
             return sc.gain
         if lc.kind == "point":
@@ -254,15 +255,20 @@ class StereoRenderer:
             irradiance = lc.intensity
         return sc.white_level * math.pi / irradiance
 
+    def frame_time(self, frame: int) -> float:
+        """Time [s] of frame index ``frame`` (``frame / rate_hz``, as `trajectory`)."""
+        return frame / self.scenario.rate_hz
+
     def _seed(self, frame: int, view: int, stream: int) -> int:
         return (self.scenario.seed * 1_000_003 + frame * 8 + view * 2 + stream) % (2**32)
 
     def radiance(
         self, frame: int, left_cam_from_target: Rigid3, spp: int | None = None
     ) -> dict[str, np.ndarray]:
-        """Linear radiance per camera, (H, W, 3) float32, distortion applied, no noise."""
+        """Linear radiance per camera, (H, W, 3) float32, distortion applied, no noise. The
+        light is placed as at the frame's time (`frame_time`)."""
         target_from_left = left_cam_from_target.inverse()
-        self._move_light(target_from_left)
+        self._move_light(target_from_left, self.frame_time(frame))
         out = {}
         for k, view in enumerate(self.views):
             target_from_cam = target_from_left @ view.cam_from_left.inverse()
@@ -310,7 +316,7 @@ class StereoRenderer:
     ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
         """Final images (and masks, if configured) of one frame, keyed by camera name."""
         rad = self.radiance(frame, left_cam_from_target)
-        scale = self.exposure_scale(left_cam_from_target)
+        scale = self.exposure_scale(left_cam_from_target, self.frame_time(frame))
         images = {
             v.name: self.expose(frame, k, rad[v.name], scale) for k, v in enumerate(self.views)
         }

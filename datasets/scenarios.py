@@ -1,8 +1,8 @@
 """Typed scenario configs, the named presets, and their exact kinematics.
 
-A scenario = target + stereo rig + light + sensor + motion + render settings. The motion is a
-torque-free-looking rigid motion: the target's rotation centre (by default the bus centroid)
-moves at constant velocity in the left camera frame while the body turns at a constant
+A scenario = target + stereo (or mono) rig + light + sensor + motion + render settings. The
+motion is a torque-free-looking rigid motion: the target's rotation centre (by default the bus
+centroid) moves at constant velocity in the left camera frame while the body turns at a constant
 angular velocity given in the target frame:
 
     R(t) = R0 Exp(omega t),   c(t) = c0 + v t,   left_cam_from_target(t) = [R(t), c(t) - R(t) r]
@@ -11,7 +11,8 @@ with ``r`` the rotation centre in the target frame. Ground truth carries ``omega
 frame, rad/s) and the velocity of the target-frame origin in the left camera frame,
 ``v - R(t) (omega x r)`` [m/s].
 
-Presets (`PRESETS`): ``paper-docking``, ``tumble``, ``close-approach``. Each scales down with
+Presets (`PRESETS`): ``paper-docking``, ``tumble``, ``close-approach`` (stereo) and
+``spin-far`` (mono, seed 001's far fast spinner). Each scales down with
 `scaled` (frames, image size, samples per pixel, seed) for tests: fewer frames keep the
 per-frame motion and cut the sequence short.
 """
@@ -120,12 +121,42 @@ class LightConfig:
             ``[0, 0, 1]`` lights the target from behind the cameras.
         intensity: lamp intensity [W/sr] or sun irradiance [W/m^2]. Only matters with
             ``sensor.exposure = fixed``.
+        rotation_deg_s: rate at which the light turns about ``rotation_axis`` [deg/s]: at
+            time ``t`` the sun's ``direction`` and the lamp's ``position_m`` are rotated by
+            ``rotation_deg_s * t`` about that axis through the left camera centre (the light
+            slowly changing direction during a long observation). 0 = a fixed light.
+        rotation_axis: axis of that rotation, left camera frame (normalised on use).
     """
 
     kind: Literal["point", "sun"] = "point"
     position_m: Vec3 = (0.15, -0.12, 0.0)
     direction: Vec3 = (0.0, 0.0, 1.0)
     intensity: float = 50.0
+    rotation_deg_s: float = 0.0
+    rotation_axis: Vec3 = (0.0, 1.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.rotation_deg_s):
+            raise ConfigError(f"light.rotation_deg_s must be finite, got {self.rotation_deg_s}")
+        axis = np.asarray(self.rotation_axis, float)
+        if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
+            raise ConfigError(f"light.rotation_axis must be a non-zero 3-vector, got {axis}")
+
+    def at(self, t_s: float) -> LightConfig:
+        """The light at time ``t_s`` [s]: ``direction`` and ``position_m`` turned by
+        ``rotation_deg_s * t_s`` about ``rotation_axis`` (the same object when the light
+        does not turn, so fixed lights render bit-identically)."""
+        if self.rotation_deg_s == 0.0:
+            return self
+        axis = np.asarray(self.rotation_axis, float)
+        R = rotvec_to_matrix(axis / np.linalg.norm(axis) * math.radians(self.rotation_deg_s * t_s))
+        d = R @ np.asarray(self.direction, float)
+        p = R @ np.asarray(self.position_m, float)
+        return replace(
+            self,
+            direction=(float(d[0]), float(d[1]), float(d[2])),
+            position_m=(float(p[0]), float(p[1]), float(p[2])),
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -358,10 +389,43 @@ def close_approach() -> Scenario:
     )
 
 
+def spin_far() -> Scenario:
+    """Seed 001's case: one camera, a far target spinning fast. 60 deg/s about the ring normal
+    (through the bus centroid; perpendicular to the solar wings, so the silhouette's long
+    axis turns with the spin), the spin axis 35 deg from the line of sight; 60 m -> 52.5 m
+    (the ~4.7 m satellite 115-135 px across); mono 1024x768 at 1 Hz for 150 s; sunlight
+    30 deg off the optical axis, turning 0.1 deg/s (30 -> 45 deg over the run)."""
+    sun = (math.sin(math.radians(30)), -0.15, math.cos(math.radians(30)))
+    return Scenario(
+        name="spin-far",
+        frames=150,
+        rate_hz=1.0,
+        rig=RigConfig(stereo=False),
+        light=LightConfig(
+            kind="sun",
+            direction=sun,
+            intensity=1.0,
+            rotation_deg_s=0.1,
+            rotation_axis=(0.0, 1.0, 0.0),
+        ),
+        # Sunlit foil at 30 deg phase: expose like `tumble`.
+        sensor=SensorConfig(white_level=1.0),
+        motion=MotionConfig(
+            start_position_m=(0.4, -0.25, 60.0),
+            velocity_m_s=(0.005, -0.003, -0.05),
+            facing_tilt_deg=35.0,
+            tilt_azimuth_deg=20.0,
+            spin_phase_deg=0.0,
+            angular_velocity_deg_s=(0.0, 0.0, 60.0),
+        ),
+    )
+
+
 PRESETS: dict[str, Callable[[], Scenario]] = {
     "paper-docking": paper_docking,
     "tumble": tumble,
     "close-approach": close_approach,
+    "spin-far": spin_far,
 }
 
 
