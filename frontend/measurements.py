@@ -229,6 +229,80 @@ class PoseMeasurement:
         object.__setattr__(self, "method", PoseMethod(self.method))
 
 
+class SpinStatus(StrEnum):
+    """Outcome of one spin-rate estimate (seed 001): ``ok`` or why it was refused."""
+
+    OK = "ok"
+    TOO_FEW_SAMPLES = "too-few-samples"  # fewer usable frames in the window than required
+    TOO_SLOW = "too-slow"  # the angle's period is not short enough for the window
+    ALIASING = "aliasing"  # several spin rates fit the sampled angle equally well
+    GEOMETRY = "geometry"  # the angle does not show the spin (view near the spin plane, ...)
+    NO_FIT = "no-fit"  # the least-squares fit failed or moved away from the spectral peak
+
+
+@dataclass(frozen=True, kw_only=True)
+class SpinRateMeasurement:
+    """The target's spin rate from one camera over a window of frames (seed 001).
+
+    The rate is the magnitude of the angular velocity, ``|omega|`` (any frame: the magnitude is
+    frame-free), averaged over the window; its sign (sense of rotation) is not observed. Only
+    rates below ``90 deg * frame rate`` are unambiguous (the silhouette's angle repeats every
+    half turn), see docs/spin.md.
+
+    Attributes:
+        rate_rad_s: spin rate ``|omega|`` [rad/s], >= 0; NaN when refused without a candidate.
+        sigma_rad_s: its standard deviation [rad/s] (from the fit residuals); NaN when refused
+            without a candidate.
+        status: ``ok`` or the kind of refusal (`SpinStatus`).
+        reason: why it was refused (one sentence); empty when ``ok``.
+        window_start_s, window_end_s: times of the first and last frame of the window [s].
+        samples: frames in the window whose angle was usable.
+    """
+
+    rate_rad_s: float
+    sigma_rad_s: float
+    status: SpinStatus
+    window_start_s: float
+    window_end_s: float
+    samples: int
+    reason: str = ""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "status", SpinStatus(self.status))
+        object.__setattr__(self, "rate_rad_s", float(self.rate_rad_s))
+        object.__setattr__(self, "sigma_rad_s", float(self.sigma_rad_s))
+        if not (np.isfinite(self.window_start_s) and np.isfinite(self.window_end_s)):
+            raise MeasurementError("spin window times must be finite")
+        if self.window_end_s < self.window_start_s:
+            raise MeasurementError(
+                f"spin window ends ({self.window_end_s} s) before it starts "
+                f"({self.window_start_s} s)"
+            )
+        if self.samples < 0:
+            raise MeasurementError(f"spin samples must be >= 0, got {self.samples}")
+        if self.status is SpinStatus.OK:
+            if not (np.isfinite(self.rate_rad_s) and self.rate_rad_s >= 0):
+                raise MeasurementError(f"spin rate must be finite and >= 0, got {self.rate_rad_s}")
+            if not (np.isfinite(self.sigma_rad_s) and self.sigma_rad_s > 0):
+                raise MeasurementError(
+                    f"spin sigma must be finite and positive, got {self.sigma_rad_s}"
+                )
+            if self.reason:
+                raise MeasurementError("an accepted spin rate carries no refusal reason")
+        else:
+            if not self.reason:
+                raise MeasurementError(f"a refused spin rate ({self.status}) needs a reason")
+            for name in ("rate_rad_s", "sigma_rad_s"):
+                v = getattr(self, name)
+                if not (np.isnan(v) or v >= 0):
+                    raise MeasurementError(f"spin {name} must be NaN or >= 0, got {v}")
+
+    @property
+    def ok(self) -> bool:
+        """True when the rate was accepted (``status == ok``)."""
+        return self.status is SpinStatus.OK
+
+
 @dataclass(frozen=True, kw_only=True)
 class FrameMeasurements:
     """Everything the frontend measured in one frame.
@@ -241,6 +315,8 @@ class FrameMeasurements:
         pose: the paper-style per-frame pose, or None.
         failures: why something is missing (``"ring: no ellipse near the prediction"``, ...).
         timings_ms: time per frontend stage [ms] (diagnostics, not a measurement).
+        spin: the spin rate over a window of frames ending at this one (seed 001, one
+            camera), accepted or refused, or None (no spin frontend, or still buffering).
     """
 
     frame: int
@@ -250,10 +326,13 @@ class FrameMeasurements:
     pose: PoseMeasurement | None = None
     failures: tuple[str, ...] = ()
     timings_ms: Mapping[str, float] = field(default_factory=dict)
+    spin: SpinRateMeasurement | None = None
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.t_s):
             raise MeasurementError(f"t_s must be finite, got {self.t_s}")
+        if self.spin is not None and not isinstance(self.spin, SpinRateMeasurement):
+            raise MeasurementError("spin must be a SpinRateMeasurement or None")
         object.__setattr__(self, "landmarks", tuple(self.landmarks))
         object.__setattr__(self, "failures", tuple(self.failures))
         ids = [lm.track_id for lm in self.landmarks]

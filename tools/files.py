@@ -5,19 +5,21 @@ can filter it without knowing satpose; `read_measurements` rebuilds the frontend
 `FrameMeasurements` exactly. Columns:
 
 - ``frame`` (int64), ``t_s`` (float64): the frame.
-- ``item`` (string): ``frame``, ``ellipse``, ``ring``, ``landmark``, ``pose``, ``failure``,
-  ``timing``.
+- ``item`` (string): ``frame``, ``ellipse``, ``ring``, ``landmark``, ``pose``, ``spin``,
+  ``failure``, ``timing``.
 - ``camera`` (string): ``left``/``right`` for ellipses.
 - ``track_id`` (int64): landmark track id, -1 otherwise.
-- ``label`` (string): landmark kind, pose method, ellipse source or timing stage.
+- ``label`` (string): landmark kind, pose method, ellipse source, spin status or timing stage.
 - ``values`` (list<float64>): ellipse ``[cx, cy, a, b, angle]``; ring
   ``[cx, cy, cz, nx, ny, nz, r]``; landmark ``[ul, vl, ur, vr, X, Y, Z]`` (NaN where
-  absent); pose ``[tx, ty, tz, qx, qy, qz, qw]``; timing ``[ms]``.
+  absent); pose ``[tx, ty, tz, qx, qy, qz, qw]``; spin ``[rate_rad_s, sigma_rad_s,
+  window_start_s, window_end_s, samples]`` (rate and sigma NaN when refused without a
+  candidate); timing ``[ms]``.
 - ``covariance`` (list<float64>): row-major, matching ``values`` (5x5; 7x7; 3x3 of X; 6x6
   over [rotation, translation]).
 - ``points`` (list<float64>): ellipse edge points ``[x0, y0, x1, y1, ...]``.
 - ``sigma_px`` (float64): pixel noise of ellipses and landmarks.
-- ``text`` (string): failure reasons.
+- ``text`` (string): failure reasons; the reason a spin rate was refused.
 
 TUM: ``t tx ty tz qx qy qz qw`` per line, space separated (readable by evo).
 """
@@ -42,6 +44,7 @@ from satpose.frontend.measurements import (
     LandmarkMeasurement,
     PoseMeasurement,
     RingMeasurement,
+    SpinRateMeasurement,
 )
 
 
@@ -151,6 +154,23 @@ def measurements_to_frame(items: Iterable[FrameMeasurements], timings: bool = Tr
                     covariance=m.pose.covariance.ravel().tolist(),
                 )
             )
+        if m.spin is not None:
+            sp = m.spin
+            rows.append(
+                _row(
+                    m,
+                    "spin",
+                    label=sp.status.value,
+                    values=[
+                        sp.rate_rad_s,
+                        sp.sigma_rad_s,
+                        sp.window_start_s,
+                        sp.window_end_s,
+                        float(sp.samples),
+                    ],
+                    text=sp.reason,
+                )
+            )
         for f in m.failures:
             rows.append(_row(m, "failure", text=f))
         for stage, ms in m.timings_ms.items() if timings else ():
@@ -214,6 +234,7 @@ def _frame_from_rows(frame: int, recs: list[dict[str, Any]]) -> FrameMeasurement
     ring = None
     landmarks = []
     pose = None
+    spin = None
     failures = []
     timings = {}
     for r in recs:
@@ -255,6 +276,16 @@ def _frame_from_rows(frame: int, recs: list[dict[str, Any]]) -> FrameMeasurement
                 covariance=_arr(r["covariance"], (6, 6)),
                 method=r["label"],
             )
+        elif item == "spin":
+            spin = SpinRateMeasurement(
+                rate_rad_s=float(v[0]),
+                sigma_rad_s=float(v[1]),
+                status=r["label"],
+                window_start_s=float(v[2]),
+                window_end_s=float(v[3]),
+                samples=int(v[4]),
+                reason=str(r["text"] or ""),
+            )
         elif item == "failure":
             failures.append(str(r["text"]))
         elif item == "timing":
@@ -277,6 +308,7 @@ def _frame_from_rows(frame: int, recs: list[dict[str, Any]]) -> FrameMeasurement
         pose=pose,
         failures=tuple(failures),
         timings_ms=timings,
+        spin=spin,
     )
 
 
