@@ -104,6 +104,76 @@ class Undistorter:
             problem = "saturated"
         return PreparedImage(gray, gray8, problem)
 
+    def crop(self, image: np.ndarray, box: tuple[int, int, int, int]) -> PreparedImage:
+        """`__call__` restricted to the undistorted pixels ``x0 <= x < x1, y0 <= y < y1``
+        (``box``, clipped to the image): the same values as that part of the full result, at
+        a cost that scales with the box (a small far target in a large image). The checks
+        ("too dark", "saturated") look at the box only.
+
+        Raises:
+            ImageError: as `__call__`, or an empty box.
+        """
+        img = np.asarray(image)
+        if img.ndim not in (2, 3) or img.shape[:2] != (self.camera.height, self.camera.width):
+            raise ImageError(
+                f"image of shape {img.shape} does not match the camera "
+                f"({self.camera.width}x{self.camera.height})"
+            )
+        h, w = img.shape[:2]
+        x0, y0 = max(int(box[0]), 0), max(int(box[1]), 0)
+        x1, y1 = min(int(box[2]), w), min(int(box[3]), h)
+        if x1 <= x0 or y1 <= y0:
+            raise ImageError(f"empty crop box {box} for a {w}x{h} image")
+        if self._maps is None:
+            sx0, sy0, sx1, sy1 = x0, y0, x1, y1
+        else:
+            mx = self._maps[0][y0:y1, x0:x1]
+            my = self._maps[1][y0:y1, x0:x1]
+            # source pixels the bilinear taps need (+1 for the right/bottom tap, +1 margin)
+            sx0 = max(int(np.floor(mx.min())) - 1, 0)
+            sy0 = max(int(np.floor(my.min())) - 1, 0)
+            sx1 = min(int(np.ceil(mx.max())) + 2, w)
+            sy1 = min(int(np.ceil(my.max())) + 2, h)
+        # The source window keeps the image's own border, so the constant border of remap
+        # applies exactly where it applies to the full image.
+        src = self._gray(img[sy0:sy1, sx0:sx1])
+        if self._maps is None:
+            gray = src
+        else:
+            gray = cv2.remap(
+                src,
+                mx - np.float32(sx0),
+                my - np.float32(sy0),
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0.0,
+            )
+        return self._prepared(np.ascontiguousarray(gray))
+
+    def _gray(self, img: np.ndarray) -> np.ndarray:
+        """(H, W) float32 grey in [0, 1] of an (H, W[, 3]) uint8/uint16/float image."""
+        if img.dtype == np.uint8:
+            scale = 1 / 255.0
+        elif img.dtype == np.uint16:
+            scale = 1 / 65535.0
+        elif np.issubdtype(img.dtype, np.floating):
+            scale = 1.0
+            img = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)
+        else:
+            raise ImageError(f"unsupported pixel type {img.dtype}")
+        if img.ndim == 3:
+            img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_BGR2GRAY)
+        return img.astype(np.float32) * np.float32(scale)
+
+    def _prepared(self, gray: np.ndarray) -> PreparedImage:
+        problem = None
+        if float(np.percentile(gray, 99.5)) < self.config.dark_level:
+            problem = "too dark"
+        elif float(np.mean(gray >= 0.995)) > self.config.saturated_fraction:
+            problem = "saturated"
+        gray8 = np.clip(gray * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        return PreparedImage(gray, gray8, problem)
+
     def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
         """Raw (distorted) pixels (N, 2) to undistorted pixels (N, 2)."""
         xy = self.camera.undistort_points(pixels)

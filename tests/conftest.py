@@ -95,3 +95,17 @@ def docking_small(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("docking") / "docking"
     render_sequence(s, out)
     return out
+
+
+@pytest.fixture(scope="session")
+def rendered_spin(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """spin-far (mono, 60 deg/s at 1 Hz), 22 frames at 320x256, 4 spp, no masks: enough for
+    four 19-frame spin windows. Rendered once per test session."""
+    from satpose.datasets.render import render_sequence
+    from satpose.datasets.scenarios import preset, scaled
+
+    s = scaled(preset("spin-far"), frames=22, size=(320, 256), spp=4)
+    s = replace(s, render=replace(s.render, masks=False))
+    out = tmp_path_factory.mktemp("spin") / "spin-far"
+    render_sequence(s, out)
+    return out

@@ -1,0 +1,1081 @@
+"""Spin rate of a far, fast-spinning target from one camera (seed 001).
+
+At medium and long range the target's outline is stable while its details are not. Per frame
+(timings of each stage go into ``FrameMeasurements.timings_ms``):
+
+1. ``locate``: the target's rough box from block averages of the raw image (`locate_target`;
+   a far target covers a small part of the image, and the next stages only look there).
+2. ``undistort``: grey, [0, 1], lens distortion removed, in that box (`Undistorter.crop`).
+3. ``region``: the target's silhouette as maximally stable extremal regions (MSER, OpenCV):
+   the largest bright region away from the image border, joined by the other bright regions
+   next to it (at long range the thin brackets between bus and wings may not connect them);
+   its second-moment ellipse; ``theta'`` is the angle of the ellipse's major axis from the
+   image x axis (x right, y down, so positive angles turn toward +y), in ``[0, pi)``. The
+   elongation ``1 - b/a`` is the frame's quality: a round region has no usable angle.
+
+Over a sliding buffer of the last ``n`` frames (seed 001: ``n = 19``):
+
+4. ``theta'`` has period ``pi`` while the spin angle has period ``2 pi``. The doubled angle
+   ``(cos 2 theta', sin 2 theta')`` is continuous (no wrap at ``pi``); its spectrum (a
+   periodogram at the sample times) peaks at twice the spin rate.
+5. Starting from that peak, the paper's two-sine model (eq. 9)
+   ``y = a1 sin(b1 t + c1) + a2 sin(b2 t + c2)`` is fitted by least squares to both components
+   with shared ``b1`` (long period: drift from lighting and geometry) and ``b2`` (short period:
+   the spin), separate amplitudes and phases; the spin rate is ``omega = b2 / 2`` (eq. 10 with
+   ``t`` in seconds). Its standard deviation propagates the per-frame angle noise, estimated
+   from the angle residuals, through the least-squares solution.
+6. Refusals, each with a reason: too few usable frames; the angle turning too slowly for the
+   window; a rate too close to the fold at ``90 deg * frame rate`` (beyond it the sampled angle
+   of a rate ``omega`` equals that of ``180 deg * f - omega``; with ``max_rate_deg_s`` above the
+   fold every rate that fits equally is listed); an angle series the spin does not explain
+   (line of sight near the spin plane, target not spinning or not elongated); a fit that left
+   the spectral peak.
+
+numpy and OpenCV only (the frontend never imports gtsam).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from satpose.datasets.camera import PinholeCamera
+from satpose.datasets.errors import ConfigError
+from satpose.datasets.sequence import Frame
+from satpose.frontend.measurements import FrameMeasurements, SpinRateMeasurement, SpinStatus
+from satpose.frontend.preprocess import PreprocessConfig, Undistorter
+
+# --------------------------------------------------------------------------------------------
+# Configuration
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class RegionConfig:
+    """MSER region selection and the per-frame angle.
+
+    Attributes:
+        delta: MSER stability step [grey levels of the 8-bit image]. Far targets are dim
+            and textured (solar cells): a small step keeps their regions.
+        min_area_px: smallest region considered [px] (stars and hot pixels are smaller).
+        max_area_fraction: largest region considered, as a fraction of the image.
+        max_variation: MSER's largest relative area change over ``delta`` grey levels.
+        min_diversity: MSER's pruning of regions too similar to their parent (OpenCV's
+            default 0.2 drops the whole-target region of a dim target; 0 keeps it).
+        min_contrast: a region is bright when its mean exceeds the mean of the pixels just
+            outside it by at least this many grey levels.
+        border_margin_px: regions reaching within this many pixels of the outermost row or
+            column are cut off by the image border and are not used (OpenCV's MSER leaves the
+            outermost pixels out).
+        group_gap: another bright region joins the target's region when the gap between
+            their bounding boxes is at most this fraction of the largest region's length
+            (wings detached from the bus at long range).
+        min_elongation: frames whose ellipse has ``1 - b/a`` below this have no usable angle.
+        coarse_block_px: the target is first found in the image averaged over blocks of this
+            size (cheap); MSER then runs on that part of the image only.
+        detect_level: a block belongs to the target when it exceeds the median block by this
+            fraction of full scale (8-bit: 2.5 grey levels; the sky is black).
+        roi_margin: the part searched with MSER is the found blob's box grown by this
+            fraction of its size (and at least two blocks) on every side.
+    """
+
+    delta: int = 2
+    min_area_px: int = 30
+    max_area_fraction: float = 0.25
+    max_variation: float = 1.0
+    min_diversity: float = 0.0
+    min_contrast: float = 2.0
+    border_margin_px: int = 1
+    group_gap: float = 0.5
+    min_elongation: float = 0.2
+    coarse_block_px: int = 8
+    detect_level: float = 0.01
+    roi_margin: float = 0.3
+
+    def __post_init__(self) -> None:
+        if self.delta < 1 or self.min_area_px < 1 or self.border_margin_px < 0:
+            raise ConfigError("spin.region: delta >= 1, min_area_px >= 1, border_margin_px >= 0")
+        if not 0 < self.max_area_fraction <= 1:
+            raise ConfigError("spin.region.max_area_fraction must be in (0, 1]")
+        if not 0 <= self.min_diversity < 1:
+            raise ConfigError("spin.region.min_diversity must be in [0, 1)")
+        if not (self.max_variation > 0 and self.min_contrast >= 0 and self.group_gap >= 0):
+            raise ConfigError("spin.region: max_variation > 0, min_contrast >= 0, group_gap >= 0")
+        if not 0 <= self.min_elongation < 1:
+            raise ConfigError("spin.region.min_elongation must be in [0, 1)")
+        if self.coarse_block_px < 1 or not (self.detect_level > 0 and self.roi_margin >= 0):
+            raise ConfigError(
+                "spin.region: coarse_block_px >= 1, detect_level > 0, roi_margin >= 0"
+            )
+
+
+@dataclass(frozen=True, kw_only=True)
+class RateConfig:
+    """Spin rate from the angle series of a sliding buffer of frames.
+
+    Attributes:
+        window_frames: frames in the buffer (seed 001: n = 19; it asks for at least 10).
+        min_samples: usable angles the buffer must hold for an estimate; more than the
+            model's parameters (`MODEL_PARAMETERS`), so that the residuals give the noise.
+        min_periods: the angle (period: half a spin turn) must complete at least this many
+            periods within the buffer, else ``too-slow``; below ~1.5 the short and the long
+            period of the model cannot be separated.
+        oversampling: spectral grid points per resolution bin ``1 / window``.
+        fold_guard_sigma: refuse (``aliasing``) when the rate is within this many standard
+            deviations of the fold ``90 deg * frame rate``.
+        max_rate_deg_s: the highest spin rate the target may have [deg/s]. None: below the
+            fold (at least four frames per spin turn). Above the fold, every rate that
+            explains the angle series equally well and lies below it is listed in an
+            ``aliasing`` refusal.
+        model: what is fitted to the buffer. ``two-sine``: the paper's eq. 9 on the doubled
+            angle (see the module docstring). ``projection``: eq. 8 generalised to any angle
+            between spin axis and line of sight, ``theta' = psi + atan2(c sin(omega t + phi),
+            cos(omega t + phi))`` on the angle itself (4 parameters; docs/spin.md compares).
+        min_explained: fraction of ``theta'``'s variation (about its circular mean) the fitted
+            model must explain, adjusted for its parameters (``1 - (RSS / (m - p)) / (TSS /
+            (m - 1))``, so that noise fitted by many parameters does not count), else
+            ``geometry`` (no periodic angle: line of sight near the spin plane, target not
+            spinning or round). Random angles reach at most ~0.75 with n = 19.
+        max_angle_noise_deg: largest standard deviation of ``theta'`` about the fit [deg],
+            else ``geometry`` (random angles scatter by 20 deg and more).
+        min_spread_deg: circular standard deviation ``theta'`` must reach over the buffer
+            [deg], else ``geometry`` (the angle hardly moves).
+        max_peak_shift_bins: the fitted rate may leave the spectral peak by at most this many
+            resolution bins, else ``no-fit``.
+    """
+
+    window_frames: int = 19
+    min_samples: int = 12
+    min_periods: float = 1.5
+    oversampling: int = 16
+    fold_guard_sigma: float = 3.0
+    max_rate_deg_s: float | None = None
+    model: Literal["two-sine", "projection"] = "two-sine"
+    min_explained: float = 0.85
+    max_angle_noise_deg: float = 15.0
+    min_spread_deg: float = 3.0
+    max_peak_shift_bins: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.window_frames < 4:
+            raise ConfigError(f"spin.rate.window_frames must be >= 4, got {self.window_frames}")
+        if not 4 <= self.min_samples <= self.window_frames:
+            raise ConfigError(
+                "spin.rate.min_samples must be in [4, window_frames], got "
+                f"{self.min_samples} (window_frames {self.window_frames})"
+            )
+        if not (self.min_periods > 0 and self.oversampling >= 1 and self.fold_guard_sigma >= 0):
+            raise ConfigError("spin.rate: min_periods > 0, oversampling >= 1, guard >= 0")
+        if self.max_rate_deg_s is not None and not self.max_rate_deg_s > 0:
+            raise ConfigError(
+                f"spin.rate.max_rate_deg_s must be positive, got {self.max_rate_deg_s}"
+            )
+        if not 0 <= self.min_explained < 1 or self.min_spread_deg < 0:
+            raise ConfigError("spin.rate: min_explained in [0, 1), min_spread_deg >= 0")
+        if not self.max_angle_noise_deg > 0:
+            raise ConfigError("spin.rate.max_angle_noise_deg must be positive")
+        if self.model not in MODEL_PARAMETERS:
+            raise ConfigError(
+                f"spin.rate.model must be one of {sorted(MODEL_PARAMETERS)}, got {self.model!r}"
+            )
+        if self.min_samples <= MODEL_PARAMETERS[self.model]:
+            raise ConfigError(
+                f"spin.rate.min_samples ({self.min_samples}) must exceed the "
+                f"{MODEL_PARAMETERS[self.model]} parameters of the {self.model} model"
+            )
+        if not self.max_peak_shift_bins > 0:
+            raise ConfigError("spin.rate.max_peak_shift_bins must be positive")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SpinConfig:
+    """The spin-rate frontend (seed 001): image checks, region and angle, rate.
+
+    ``preprocess.dark_level`` defaults to 0 (no "too dark" check): a far target covers well
+    under the 0.5 % of the image the stereo frontend's percentile test looks at; a frame
+    without the target fails as "no bright region" instead.
+    """
+
+    preprocess: PreprocessConfig = field(default_factory=lambda: PreprocessConfig(dark_level=0.0))
+    region: RegionConfig = field(default_factory=RegionConfig)
+    rate: RateConfig = field(default_factory=RateConfig)
+
+
+# --------------------------------------------------------------------------------------------
+# Per frame: region and angle
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class AngleObservation:
+    """The target's silhouette ellipse in one (undistorted) image.
+
+    Attributes:
+        angle_rad: ``theta'``, angle of the major axis from the image x axis, in ``[0, pi)``
+            (toward +y, i.e. clockwise on screen); NaN when the frame failed.
+        center_px: (2,) region centroid [undistorted px]; NaN when no region.
+        axes_px: (2,) semi-axes ``(a, b)``, ``a >= b``, of the second-moment ellipse (a
+            uniform ellipse has exactly these axes) [px]; NaN when no region.
+        area_px: pixels in the region (0 when none).
+        elongation: ``1 - b/a`` (the quality: 0 for a disc); NaN when no region.
+        failure: why the frame has no usable angle, or None.
+    """
+
+    angle_rad: float
+    center_px: np.ndarray
+    axes_px: np.ndarray
+    area_px: int
+    elongation: float
+    failure: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        """True when ``angle_rad`` is usable."""
+        return self.failure is None
+
+    @staticmethod
+    def failed(reason: str) -> AngleObservation:
+        """An observation without a region."""
+        nan2 = np.full(2, np.nan)
+        return AngleObservation(
+            angle_rad=math.nan,
+            center_px=nan2,
+            axes_px=nan2,
+            area_px=0,
+            elongation=math.nan,
+            failure=reason,
+        )
+
+
+def _is_bright(gray8: np.ndarray, pts: np.ndarray, min_contrast: float) -> bool:
+    """Is the region (N, 2) ``x, y`` brighter than the pixels just outside it?"""
+    h, w = gray8.shape
+    x0, y0 = max(int(pts[:, 0].min()) - 2, 0), max(int(pts[:, 1].min()) - 2, 0)
+    x1, y1 = min(int(pts[:, 0].max()) + 3, w), min(int(pts[:, 1].max()) + 3, h)
+    inside = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    inside[pts[:, 1] - y0, pts[:, 0] - x0] = 1
+    ring = (cv2.dilate(inside, np.ones((3, 3), np.uint8)) > 0) & (inside == 0)
+    if not ring.any():
+        return False
+    patch = gray8[y0:y1, x0:x1]
+    return float(patch[inside > 0].mean()) - float(patch[ring].mean()) >= min_contrast
+
+
+Box = tuple[int, int, int, int]
+"""``(x0, y0, x1, y1)`` pixel box: inclusive corners for regions, exclusive end for crops."""
+
+BORDER = "spin: the target touches the image border"
+"""Failure of a frame whose target is cut off by the image border."""
+
+
+def _box_gap(a: Box, b: Box) -> float:
+    """Gap [px] between two inclusive ``(x0, y0, x1, y1)`` boxes (0 when they overlap)."""
+    dx = max(b[0] - a[2], a[0] - b[2], 0)
+    dy = max(b[1] - a[3], a[1] - b[3], 0)
+    return math.hypot(dx, dy)
+
+
+def moment_ellipse(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Second-moment ellipse of a binary region: centre (2,) [px], semi-axes ``(a, b)`` (2,)
+    [px] (``2 sqrt`` of the eigenvalues of the pixel covariance: exact for a uniform
+    ellipse) and the major axis' angle from the x axis in ``[0, pi)`` [rad]."""
+    m = cv2.moments(mask.astype(np.uint8), binaryImage=True)
+    if m["m00"] <= 0:
+        raise ConfigError("moment_ellipse: empty region")
+    c = np.array([m["m10"] / m["m00"], m["m01"] / m["m00"]])
+    mu20, mu02, mu11 = m["mu20"] / m["m00"], m["mu02"] / m["m00"], m["mu11"] / m["m00"]
+    half_diff = 0.5 * (mu20 - mu02)
+    root = math.hypot(half_diff, mu11)
+    mean = 0.5 * (mu20 + mu02)
+    axes = 2.0 * np.sqrt(np.maximum([mean + root, mean - root], 0.0))
+    angle = 0.5 * math.atan2(2.0 * mu11, mu20 - mu02)
+    return c, axes, angle % math.pi
+
+
+def locate_target(image: np.ndarray, config: RegionConfig | None = None) -> Box | None:
+    """Where the target is, roughly: the box (exclusive end, pixels of ``image``) around the
+    largest bright blob of the block-averaged image, grown by ``roi_margin``; None when no
+    block stands out. Cheap (one colour conversion and one resize of the image).
+
+    Args:
+        image: (H, W) grey or (H, W, 3) BGR, uint8, uint16 or float in [0, 1], as stored
+            (distorted: map the box through the camera before cropping an undistorted image).
+        config: region settings (defaults if None).
+    """
+    cfg = config or RegionConfig()
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_BGR2GRAY)
+    if img.ndim != 2:
+        raise ConfigError(f"locate_target needs an (H, W[, 3]) image, got shape {img.shape}")
+    full = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype, 1.0)
+    h, w = img.shape
+    k = cfg.coarse_block_px
+    small = cv2.resize(img, (max(w // k, 1), max(h // k, 1)), interpolation=cv2.INTER_AREA)
+    small = small.astype(np.float32) / np.float32(full)
+    blob = (small > float(np.median(small)) + cfg.detect_level).astype(np.uint8)
+    # one block of dilation joins parts a few blocks apart (wings beyond dim struts)
+    blob = cv2.dilate(blob, np.ones((3, 3), np.uint8))
+    n, _, stats, _ = cv2.connectedComponentsWithStats(blob, connectivity=8)
+    if n < 2:
+        return None
+    i = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    sx, sy = w / small.shape[1], h / small.shape[0]
+    x0, y0 = stats[i, cv2.CC_STAT_LEFT] * sx, stats[i, cv2.CC_STAT_TOP] * sy
+    x1 = x0 + stats[i, cv2.CC_STAT_WIDTH] * sx
+    y1 = y0 + stats[i, cv2.CC_STAT_HEIGHT] * sy
+    pad = max(2.0 * k, cfg.roi_margin * max(x1 - x0, y1 - y0))
+    return (
+        max(int(x0 - pad), 0),
+        max(int(y0 - pad), 0),
+        min(math.ceil(x1 + pad), w),
+        min(math.ceil(y1 + pad), h),
+    )
+
+
+def measure_angle(
+    gray8: np.ndarray,
+    config: RegionConfig | None = None,
+    *,
+    origin: tuple[int, int] = (0, 0),
+    image_size: tuple[int, int] | None = None,
+) -> AngleObservation:
+    """The target's silhouette ellipse and ``theta'`` in a grey image or a crop of one.
+
+    Args:
+        gray8: (H, W) uint8 image (or crop), undistorted (`Undistorter`), the target bright on
+            a dark sky.
+        config: region settings (defaults if None).
+        origin: pixel of the full image at the crop's top-left corner.
+        image_size: ``(width, height)`` of the full image (default: the crop is the image);
+            regions touching its border are cut off by it, and ``max_area_fraction`` refers
+            to it.
+
+    Returns:
+        An `AngleObservation` in full-image pixels; ``failure`` says why there is no angle
+        (no bright region, the target clipped by the image border or not elongated). Never
+        raises on a bad image.
+    """
+    cfg = config or RegionConfig()
+    img = np.ascontiguousarray(gray8)
+    if img.ndim != 2 or img.dtype != np.uint8:
+        raise ConfigError(f"measure_angle needs an (H, W) uint8 image, got {img.dtype} {img.shape}")
+    h, w = img.shape
+    ox, oy = int(origin[0]), int(origin[1])
+    width, height = image_size if image_size is not None else (w, h)
+    mser = cv2.MSER_create(
+        delta=cfg.delta,
+        min_area=cfg.min_area_px,
+        # A crop is chosen with a margin around the target: a region covering half of it is
+        # sky noise (and collecting the pixels of such regions would dominate the cost).
+        max_area=max(
+            int(min(cfg.max_area_fraction * width * height, 0.5 * w * h)), cfg.min_area_px + 1
+        ),
+        max_variation=cfg.max_variation,
+        min_diversity=cfg.min_diversity,
+    )
+    regions, _ = mser.detectRegions(img)
+    m = cfg.border_margin_px
+    # Regions touching the image border are cut off by it (``cut``: the target is clipped).
+    # Regions touching a crop edge inside the image extend beyond the crop: in the whole
+    # image they are larger than anything the crop was chosen around (sky noise joined to a
+    # faint halo); they are skipped like regions above ``max_area``.
+    lo_x, lo_y = m - ox, m - oy
+    hi_x, hi_y = width - 1 - m - ox, height - 1 - m - oy
+    in_x0, in_y0 = (ox > 0), (oy > 0)  # crop edges inside the image
+    in_x1, in_y1 = (ox + w < width), (oy + h < height)
+
+    def beyond_crop(box: Box) -> bool:
+        return (
+            (in_x0 and box[0] <= m)
+            or (in_y0 and box[1] <= m)
+            or (in_x1 and box[2] >= w - 1 - m)
+            or (in_y1 and box[3] >= h - 1 - m)
+        )
+
+    items = []
+    for pts in regions:
+        pts = np.asarray(pts).reshape(-1, 2)
+        items.append((len(pts), pts))
+    items.sort(key=lambda r: -r[0])
+    primary = None
+    cut = 0
+    for area, pts in items:
+        box = (
+            int(pts[:, 0].min()),
+            int(pts[:, 1].min()),
+            int(pts[:, 0].max()),
+            int(pts[:, 1].max()),
+        )
+        if beyond_crop(box):
+            continue
+        if box[0] <= lo_x or box[1] <= lo_y or box[2] >= hi_x or box[3] >= hi_y:
+            if not cut and _is_bright(img, pts, cfg.min_contrast):
+                cut = area
+            continue
+        if _is_bright(img, pts, cfg.min_contrast):
+            primary = (area, box, pts)
+            break
+    if primary is None:
+        return AngleObservation.failed(
+            "spin: the target touches the image border" if cut else "spin: no bright region"
+        )
+    area0, box0, pts0 = primary
+    if cut > area0:
+        return AngleObservation.failed("spin: the target touches the image border")
+    mask = np.zeros((h, w), np.uint8)
+    mask[pts0[:, 1], pts0[:, 0]] = 1
+    _, axes0, _ = moment_ellipse(mask)
+    gap_px = cfg.group_gap * 2.0 * axes0[0]
+    group = box0
+    # MSER regions nest: a smaller bright region either lies inside the group already or is a
+    # separate part of the target (a wing cut off by dim struts) when it is close enough to
+    # the group; joining one part can bring the next within reach, so repeat until stable.
+    rest = [item for item in items if item[1] is not pts0]
+    bright: dict[int, bool] = {}  # region id -> brighter than its surroundings (cached)
+    joined = True
+    while joined and rest:
+        joined = False
+        remaining = []
+        for area, pts in rest:
+            if mask[pts[:, 1], pts[:, 0]].mean() > 0.5:
+                continue  # nested in the group (or a hole of it)
+            box = (
+                int(pts[:, 0].min()),
+                int(pts[:, 1].min()),
+                int(pts[:, 0].max()),
+                int(pts[:, 1].max()),
+            )
+            if (
+                beyond_crop(box)
+                or box[0] <= lo_x
+                or box[1] <= lo_y
+                or box[2] >= hi_x
+                or box[3] >= hi_y
+            ):
+                continue
+            if _box_gap(group, box) > gap_px:
+                remaining.append((area, pts))
+                continue
+            if id(pts) not in bright:
+                bright[id(pts)] = _is_bright(img, pts, cfg.min_contrast)
+            if bright[id(pts)]:
+                mask[pts[:, 1], pts[:, 0]] = 1
+                group = (
+                    min(group[0], box[0]),
+                    min(group[1], box[1]),
+                    max(group[2], box[2]),
+                    max(group[3], box[3]),
+                )
+                joined = True
+            else:
+                remaining.append((area, pts))
+        rest = remaining
+    center, axes, angle = moment_ellipse(mask)
+    elongation = 1.0 - axes[1] / axes[0] if axes[0] > 0 else 0.0
+    failure = None
+    if elongation < cfg.min_elongation:
+        failure = (
+            f"spin: the target's outline is not elongated (axis ratio {1 - elongation:.2f} > "
+            f"{1 - cfg.min_elongation:.2f})"
+        )
+    return AngleObservation(
+        angle_rad=angle if failure is None else math.nan,
+        center_px=center + np.array([ox, oy], float),
+        axes_px=axes,
+        area_px=int(mask.sum()),
+        elongation=float(elongation),
+        failure=failure,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Over a buffer: the spin rate
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class SpinFit:
+    """One spin-rate estimate over a window, with the fitted model (for plots and checks).
+
+    Attributes:
+        status, reason: ``ok`` or the refusal and why (`SpinStatus`).
+        rate_rad_s, sigma_rad_s: ``|omega|`` and its standard deviation [rad/s]; NaN when no
+            candidate was found.
+        window_start_s, window_end_s: first and last frame time of the window [s].
+        samples: usable angles in the window.
+        frame_interval_s: the frames' nominal interval [s] (sets the fold).
+        spectral_rate_rad_s: the rate at the periodogram's peak (the fit's start) [rad/s].
+        model: the fitted model (``two-sine`` or ``projection``), empty when none was fitted.
+        params: the model's parameters (`RateConfig.model`), times relative to ``t_ref_s``.
+        t_ref_s: time origin of the model [s] (window centre).
+        angle_noise_rad: standard deviation of one ``theta'`` about the fit [rad].
+        explained: fraction of ``theta'``'s variation (about its circular mean) the model
+            explains, adjusted for its parameters (`RateConfig.min_explained`).
+    """
+
+    status: SpinStatus
+    reason: str
+    rate_rad_s: float
+    sigma_rad_s: float
+    window_start_s: float
+    window_end_s: float
+    samples: int
+    frame_interval_s: float
+    spectral_rate_rad_s: float = math.nan
+    model: str = ""
+    params: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    t_ref_s: float = math.nan
+    angle_noise_rad: float = math.nan
+    explained: float = math.nan
+
+    @property
+    def ok(self) -> bool:
+        """True when the rate was accepted."""
+        return self.status is SpinStatus.OK
+
+    def angle(self, t_s: np.ndarray) -> np.ndarray:
+        """The fitted model's ``theta'`` in ``[0, pi)`` at times ``t_s`` (N,) [rad]."""
+        tau = np.asarray(t_s, float) - self.t_ref_s
+        if self.model == "two-sine":
+            return _two_sine_angle(self.params, tau) % math.pi
+        if self.model == "projection":
+            return _projection_angle(self.params, tau) % math.pi
+        raise ConfigError("this spin estimate has no fitted model")
+
+    def measurement(self) -> SpinRateMeasurement:
+        """The estimate as the frontend -> backend contract type."""
+        return SpinRateMeasurement(
+            rate_rad_s=self.rate_rad_s,
+            sigma_rad_s=self.sigma_rad_s,
+            status=self.status,
+            reason=self.reason,
+            window_start_s=self.window_start_s,
+            window_end_s=self.window_end_s,
+            samples=self.samples,
+        )
+
+
+def _wrap_half(a: np.ndarray) -> np.ndarray:
+    """Angle differences of lines (period pi) into ``[-pi/2, pi/2)``."""
+    return (np.asarray(a) + 0.5 * math.pi) % math.pi - 0.5 * math.pi
+
+
+# -- the paper's two-sine model (eq. 9) on the doubled angle ----------------------------------
+
+
+def _design(tau: np.ndarray, b1: float, b2: float) -> np.ndarray:
+    """(N, 4) basis ``[sin b1 t, cos b1 t, sin b2 t, cos b2 t]``."""
+    return np.column_stack([np.sin(b1 * tau), np.cos(b1 * tau), np.sin(b2 * tau), np.cos(b2 * tau)])
+
+
+def _solve_linear(A: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares coefficients (2, 4) of both components and the residual sum of squares."""
+    C, *_ = np.linalg.lstsq(A, Y, rcond=None)
+    r = Y - A @ C
+    return C.T, float(np.sum(r * r))
+
+
+def _two_sine_angle(params: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """``theta'`` [rad] of the two-sine model ``params = [b1, b2, C_u (4), C_v (4)]``."""
+    uv = _design(tau, params[0], params[1]) @ params[2:].reshape(2, 4).T
+    return 0.5 * np.arctan2(uv[:, 1], uv[:, 0])
+
+
+def _two_sine_jacobian(tau: np.ndarray, b1: float, b2: float, C: np.ndarray) -> np.ndarray:
+    """(2N, 10) Jacobian of the stacked model ``[u; v]`` w.r.t. ``[b1, b2, C_u (4), C_v (4)]``."""
+    A = _design(tau, b1, b2)
+    m = tau.size
+    J = np.zeros((2 * m, 10))
+    for j in range(2):
+        rows = slice(j * m, (j + 1) * m)
+        c = C[j]
+        J[rows, 0] = tau * (c[0] * np.cos(b1 * tau) - c[1] * np.sin(b1 * tau))
+        J[rows, 1] = tau * (c[2] * np.cos(b2 * tau) - c[3] * np.sin(b2 * tau))
+        J[rows, 2 + 4 * j : 6 + 4 * j] = A
+    return J
+
+
+def _two_sine_fit(
+    tau: np.ndarray, th: np.ndarray, b_peak: float, bin_rad_s: float
+) -> tuple[np.ndarray, float]:
+    """The paper's model fitted to ``(cos 2theta', sin 2theta')`` with shared ``b1``, ``b2``.
+
+    Amplitudes and phases are linear for given ``(b1, b2)``: ``b1`` (long period, at most one
+    cycle per window) starts at the best of a few values with ``b2`` at the spectral peak,
+    then Levenberg-Marquardt refines all ten parameters. Returns the parameters and the
+    standard deviation of ``b2`` per unit angle noise [rad/s per rad] (the solution's
+    sensitivity to each frame's angle: a frame's angle error ``d theta`` moves its
+    doubled-angle components by ``2 (-sin 2theta, cos 2theta) d theta``).
+    """
+    Y = np.column_stack([np.cos(2.0 * th), np.sin(2.0 * th)])
+    y = np.concatenate([Y[:, 0], Y[:, 1]])
+    b1_lo, b1_hi = 0.05 * bin_rad_s, min(bin_rad_s, 0.5 * b_peak)
+    b1 = float(
+        min(
+            np.linspace(b1_lo, b1_hi, 6),
+            key=lambda b: _solve_linear(_design(tau, float(b), b_peak), Y)[1],
+        )
+    )
+    b2 = b_peak
+    C, cost = _solve_linear(_design(tau, b1, b2), Y)
+    lam = 1e-3
+    for _ in range(30):
+        J = _two_sine_jacobian(tau, b1, b2, C)
+        r = (_design(tau, b1, b2) @ C.T).T.ravel() - y
+        H, g = J.T @ J, J.T @ r
+        improved = False
+        for _ in range(8):
+            dp = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), -g)
+            nb1 = float(np.clip(b1 + dp[0], b1_lo, b1_hi))
+            nb2 = b2 + float(dp[1])
+            nC = C + dp[2:].reshape(2, 4)
+            new_cost = float(np.sum(((_design(tau, nb1, nb2) @ nC.T).T.ravel() - y) ** 2))
+            if new_cost <= cost:
+                improved = cost - new_cost > 1e-14 * cost + 1e-30
+                b1, b2, C, cost = nb1, nb2, nC, new_cost
+                lam = max(lam / 10.0, 1e-9)
+                break
+            lam *= 10.0
+        if not improved:
+            break
+    m = tau.size
+    J = _two_sine_jacobian(tau, b1, b2, C)
+    G = np.linalg.pinv(J.T @ J, rcond=1e-12) @ J.T  # d params / d [u; v]
+    du = np.concatenate([-2.0 * np.sin(2.0 * th), 2.0 * np.cos(2.0 * th)])
+    sens = G[1, :m] * du[:m] + G[1, m:] * du[m:]  # d b2 / d theta_k
+    params = np.concatenate([[b1, b2], C.ravel()])
+    return params, float(np.sqrt(np.sum(sens * sens)))
+
+
+# -- the projection model: eq. 8 for any angle between spin axis and line of sight ------------
+
+
+def _projection_angle(params: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """``theta' = psi + atan2(c sin(omega t + phi), cos(omega t + phi))`` [rad] for
+    ``params = [psi, c, omega, phi]``: the image angle of a direction turning at ``omega`` in
+    the spin plane, seen orthographically (``|c|`` = cosine of the angle between spin axis
+    and line of sight, its sign the sense of rotation; ``c = 1`` is eq. 8)."""
+    psi, c, w, phi = params
+    x = w * tau + phi
+    return psi + np.arctan2(c * np.sin(x), np.cos(x))
+
+
+def _projection_jacobian(params: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """(N, 4) Jacobian of `_projection_angle` w.r.t. ``[psi, c, omega, phi]``."""
+    _, c, w, phi = params
+    x = w * tau + phi
+    s, co = np.sin(x), np.cos(x)
+    d = co * co + c * c * s * s
+    dx = c / d
+    return np.column_stack([np.ones_like(tau), s * co / d, tau * dx, dx])
+
+
+def _projection_fit(tau: np.ndarray, th: np.ndarray, omega0: float) -> tuple[np.ndarray, float]:
+    """Least squares of `_projection_angle` on the angle residuals (period pi), started from
+    the best of a grid over ``(c, phi)`` at ``omega0`` (the spectral peak) with the optimal
+    ``psi`` for each. Returns the parameters and the standard deviation of ``omega`` per unit
+    angle noise [rad/s per rad]."""
+    cs = np.array([-1.0, -0.8, -0.5, -0.2, 0.2, 0.5, 0.8, 1.0])
+    phis = np.linspace(0.0, math.pi, 8, endpoint=False)
+    x = omega0 * tau[None, None, :] + phis[None, :, None]
+    g = np.arctan2(cs[:, None, None] * np.sin(x), np.cos(x))
+    psi = 0.5 * np.angle(np.sum(np.exp(2j * (th - g)), axis=2))
+    r = _wrap_half(th - g - psi[..., None])
+    i, j = np.unravel_index(np.argmin(np.sum(r * r, axis=2)), psi.shape)
+    p = np.array([psi[i, j], cs[i], omega0, phis[j]])
+    cost = float(np.sum(_wrap_half(th - _projection_angle(p, tau)) ** 2))
+    lam = 1e-3
+    for _ in range(50):
+        r1 = _wrap_half(th - _projection_angle(p, tau))
+        J = _projection_jacobian(p, tau)
+        H, grad = J.T @ J, J.T @ r1
+        improved = False
+        for _ in range(10):
+            dp = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), grad)
+            pn = p + dp
+            pn[1] = float(np.clip(pn[1], -1.0, 1.0))
+            new_cost = float(np.sum(_wrap_half(th - _projection_angle(pn, tau)) ** 2))
+            if new_cost <= cost:
+                improved = cost - new_cost > 1e-14 * cost + 1e-30
+                p, cost = pn, new_cost
+                lam = max(lam / 10.0, 1e-9)
+                break
+            lam *= 10.0
+        if not improved:
+            break
+    J = _projection_jacobian(p, tau)
+    cov = np.linalg.pinv(J.T @ J, rcond=1e-12)  # per unit angle variance
+    return p, float(np.sqrt(max(cov[2, 2], 0.0)))
+
+
+# -- the estimate -------------------------------------------------------------------------------
+
+
+MODEL_PARAMETERS = {"two-sine": 9, "projection": 4}
+"""Free parameters of each model as seen by the angle (the residual degrees of freedom are
+``samples - this``): the two-sine model has ten, but a common scale of both components does
+not change the angle."""
+
+
+def _refused(
+    status: SpinStatus,
+    reason: str,
+    t0: float,
+    t1: float,
+    samples: int,
+    dt: float,
+    rate: float = math.nan,
+    sigma: float = math.nan,
+    **extra: object,
+) -> SpinFit:
+    return SpinFit(
+        status=status,
+        reason=reason,
+        rate_rad_s=rate,
+        sigma_rad_s=sigma,
+        window_start_s=t0,
+        window_end_s=t1,
+        samples=samples,
+        frame_interval_s=dt,
+        **extra,  # type: ignore[arg-type]
+    )
+
+
+def estimate_spin_rate(
+    t_s: np.ndarray,
+    angle_rad: np.ndarray,
+    config: RateConfig | None = None,
+    *,
+    window_s: tuple[float, float] | None = None,
+    frame_interval_s: float | None = None,
+) -> SpinFit:
+    """Spin rate from the silhouette angles of one window of frames (seed 001, eqs. 8-10).
+
+    Args:
+        t_s: (N,) times of the usable frames [s], strictly increasing.
+        angle_rad: (N,) ``theta'`` of those frames [rad] (any representative modulo ``pi``).
+        config: rate settings (defaults if None).
+        window_s: ``(first, last)`` frame time of the whole window [s] (frames without a usable
+            angle included); default: the first and last of ``t_s``.
+        frame_interval_s: nominal frame interval [s]; default: median of ``diff(t_s)``.
+
+    Returns:
+        A `SpinFit`: the rate ``|omega|`` [rad/s] with its standard deviation, or a refusal
+        with its reason (degenerate data is refused, not raised).
+
+    Raises:
+        ConfigError: times not increasing, or ``t_s`` and ``angle_rad`` of different lengths.
+    """
+    cfg = config or RateConfig()
+    t = np.asarray(t_s, float).ravel()
+    th = np.asarray(angle_rad, float).ravel()
+    if t.shape != th.shape:
+        raise ConfigError(f"t_s and angle_rad differ in length: {t.shape} vs {th.shape}")
+    keep = np.isfinite(t) & np.isfinite(th)
+    t, th = t[keep], th[keep]
+    m = int(t.size)
+    if m > 1 and not np.all(np.diff(t) > 0):
+        raise ConfigError("estimate_spin_rate: times must be strictly increasing")
+    if window_s is None:
+        t0, t1 = (float(t[0]), float(t[-1])) if m else (0.0, 0.0)
+    else:
+        t0, t1 = float(window_s[0]), float(window_s[1])
+    if frame_interval_s is not None:
+        dt = float(frame_interval_s)
+    else:
+        dt = float(np.median(np.diff(t))) if m > 1 else math.nan
+    if m < cfg.min_samples:
+        return _refused(
+            SpinStatus.TOO_FEW_SAMPLES,
+            f"{m} usable frames in the window, {cfg.min_samples} needed",
+            t0,
+            t1,
+            m,
+            dt,
+        )
+    if not (math.isfinite(dt) and dt > 0):
+        raise ConfigError(f"estimate_spin_rate: frame interval must be positive, got {dt}")
+    span = (t1 - t0) + dt  # the window covers n frame intervals
+    fold = math.pi / (2.0 * dt)  # the doubled angle reaches Nyquist at this spin rate [rad/s]
+    t_ref = 0.5 * (t0 + t1)
+    tau = t - t_ref
+
+    # How much theta' moves: circular spread (half that of the doubled angle).
+    z = np.exp(2j * th)
+    R = float(abs(z.mean()))
+    spread = 0.5 * math.sqrt(-2.0 * math.log(R)) if 0 < R < 1 else (0.0 if R >= 1 else math.inf)
+    if math.degrees(spread) < cfg.min_spread_deg:
+        return _refused(
+            SpinStatus.GEOMETRY,
+            f"theta' hardly changes (spread {math.degrees(spread):.1f} deg < "
+            f"{cfg.min_spread_deg:g}): the target is not spinning, or spins about its long "
+            "axis, or the line of sight lies in the spin plane",
+            t0,
+            t1,
+            m,
+            dt,
+        )
+
+    # Spectral estimate of the doubled angle's frequency b = 2 omega: periodogram of both
+    # components at the sample times (gaps allowed), up to the Nyquist frequency.
+    zc = z - z.mean()
+    bin_rad_s = 2.0 * math.pi / span  # resolution of b
+    b_grid = np.arange(0.5 * bin_rad_s / cfg.oversampling, 2.0 * fold, bin_rad_s / cfg.oversampling)
+    E = np.exp(-1j * np.outer(b_grid, tau))
+    power = np.abs(E @ zc.real) ** 2 + np.abs(E @ zc.imag) ** 2
+    b_peak = float(b_grid[int(np.argmax(power))])
+    spectral = 0.5 * b_peak
+    b_lo = 2.0 * math.pi * cfg.min_periods / span
+    if b_peak < b_lo:
+        return _refused(
+            SpinStatus.TOO_SLOW,
+            f"theta' turns fewer than {cfg.min_periods:g} times in the {span:g} s window (about "
+            f"{math.degrees(spectral):.1f} deg/s, minimum {math.degrees(0.5 * b_lo):.1f}): use "
+            "a longer window",
+            t0,
+            t1,
+            m,
+            dt,
+            spectral_rate_rad_s=spectral,
+        )
+
+    if cfg.model == "two-sine":
+        params, per_noise = _two_sine_fit(tau, th, b_peak, bin_rad_s)
+        rate = 0.5 * abs(float(params[1]))
+        sens = 0.5 * per_noise
+        model_angle = _two_sine_angle(params, tau)
+    else:
+        params, sens = _projection_fit(tau, th, spectral)
+        rate = abs(float(params[2]))
+        model_angle = _projection_angle(params, tau)
+    resid = _wrap_half(th - model_angle)
+    dof = max(m - MODEL_PARAMETERS[cfg.model], 1)
+    noise = math.sqrt(float(resid @ resid) / dof)
+    sigma = noise * sens
+    deviation = 0.5 * np.angle(z * np.conj(z.mean())) if R > 0 else _wrap_half(th)
+    tss = float(deviation @ deviation)
+    explained = 1.0 - (float(resid @ resid) / dof) / (tss / (m - 1)) if tss > 0 else 0.0
+    fitted: dict[str, object] = {
+        "spectral_rate_rad_s": spectral,
+        "model": cfg.model,
+        "params": params,
+        "t_ref_s": t_ref,
+        "angle_noise_rad": noise,
+        "explained": explained,
+    }
+
+    def refuse(status: SpinStatus, reason: str) -> SpinFit:
+        return _refused(status, reason, t0, t1, m, dt, rate, sigma, **fitted)
+
+    shift_bins = abs(2.0 * rate - b_peak) / bin_rad_s
+    if shift_bins > cfg.max_peak_shift_bins or not math.isfinite(sigma):
+        return refuse(
+            SpinStatus.NO_FIT,
+            f"the fit left the spectral peak ({math.degrees(spectral):.2f} -> "
+            f"{math.degrees(rate):.2f} deg/s, {shift_bins:.1f} bins)",
+        )
+    if explained < cfg.min_explained or math.degrees(noise) > cfg.max_angle_noise_deg:
+        return refuse(
+            SpinStatus.GEOMETRY,
+            f"the {cfg.model} model explains {100 * explained:.0f}% of theta''s variation "
+            f"(minimum {100 * cfg.min_explained:.0f}%), theta' scatters "
+            f"{math.degrees(noise):.1f} deg about it (maximum {cfg.max_angle_noise_deg:g}): "
+            "line of sight near the spin plane, or the target not spinning or not elongated",
+        )
+    if fold - rate < cfg.fold_guard_sigma * sigma:
+        return refuse(
+            SpinStatus.ALIASING,
+            f"{math.degrees(rate):.2f} deg/s is within {cfg.fold_guard_sigma:g} sigma "
+            f"({math.degrees(sigma):.2f} deg/s) of the fold at {math.degrees(fold):.1f} deg/s "
+            f"(90 deg per frame): {math.degrees(2 * fold - rate):.2f} deg/s fits as well",
+        )
+    if cfg.max_rate_deg_s is not None:
+        candidates = alias_rates(rate, dt, math.radians(cfg.max_rate_deg_s))
+        if len(candidates) > 1:
+            listed = ", ".join(f"{math.degrees(c):.2f}" for c in candidates)
+            return refuse(
+                SpinStatus.ALIASING,
+                f"at {1 / dt:g} frames/s the rates {listed} deg/s (all up to max_rate_deg_s "
+                f"{cfg.max_rate_deg_s:g}) fit theta' equally well",
+            )
+    return SpinFit(
+        status=SpinStatus.OK,
+        reason="",
+        rate_rad_s=rate,
+        sigma_rad_s=sigma,
+        window_start_s=t0,
+        window_end_s=t1,
+        samples=m,
+        frame_interval_s=dt,
+        **fitted,  # type: ignore[arg-type]
+    )
+
+
+def alias_rates(rate_rad_s: float, frame_interval_s: float, max_rate_rad_s: float) -> list[float]:
+    """Every spin rate up to ``max_rate_rad_s`` whose sampled ``theta'`` equals that of
+    ``rate_rad_s`` (in either sense of rotation): ``k pi / dt -+ rate`` [rad/s], sorted."""
+    step = math.pi / frame_interval_s  # theta' repeats every half turn: 180 deg per frame
+    out: list[float] = []
+    k = 0
+    while k * step - rate_rad_s <= max_rate_rad_s:
+        for r in (k * step - rate_rad_s, k * step + rate_rad_s):
+            if 0 <= r <= max_rate_rad_s and all(abs(r - o) > 1e-12 for o in out):
+                out.append(r)
+        k += 1
+    return sorted(out)
+
+
+class SpinRateEstimator:
+    """The sliding buffer: the last ``window_frames`` frames' angles, one estimate per frame
+    once the buffer is full (frames without a usable angle count toward the window)."""
+
+    def __init__(self, config: RateConfig | None = None) -> None:
+        self.config = config or RateConfig()
+        self._t: deque[float] = deque(maxlen=self.config.window_frames)
+        self._angle: deque[float] = deque(maxlen=self.config.window_frames)
+
+    def add(self, t_s: float, angle_rad: float) -> SpinFit | None:
+        """Add one frame at ``t_s`` [s] (``angle_rad`` NaN when it has no usable angle); the
+        estimate over the buffer ending at it, or None while the buffer fills."""
+        if self._t and not t_s > self._t[-1]:
+            raise ConfigError(f"spin: frame time {t_s} s does not follow {self._t[-1]} s")
+        self._t.append(float(t_s))
+        self._angle.append(float(angle_rad))
+        if len(self._t) < self.config.window_frames:
+            return None
+        t = np.array(self._t)
+        a = np.array(self._angle)
+        ok = np.isfinite(a)
+        return estimate_spin_rate(
+            t[ok],
+            a[ok],
+            self.config,
+            window_s=(float(t[0]), float(t[-1])),
+            frame_interval_s=float(np.median(np.diff(t))),
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# The frontend
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class SpinStep:
+    """What the spin frontend saw in one frame (handed to the optional hook).
+
+    Attributes:
+        frame, t_s: the frame.
+        angle: the silhouette ellipse and ``theta'``.
+        fit: the estimate over the buffer ending at this frame, or None while buffering.
+    """
+
+    frame: int
+    t_s: float
+    angle: AngleObservation
+    fit: SpinFit | None
+
+
+class SpinFrontend:
+    """One camera's frames in, `FrameMeasurements` with ``spin`` out (seed 001).
+
+    Args:
+        camera: the camera (its distortion is removed first).
+        config: settings (defaults if None).
+        hook: optional callable receiving a `SpinStep` per frame (plots, diagnostics).
+    """
+
+    def __init__(
+        self,
+        camera: PinholeCamera,
+        config: SpinConfig | None = None,
+        hook: Callable[[SpinStep], None] | None = None,
+    ) -> None:
+        self.config = config or SpinConfig()
+        self.undistort = Undistorter(camera, self.config.preprocess)
+        self.rate = SpinRateEstimator(self.config.rate)
+        self.hook = hook
+
+    def _angle(self, image: np.ndarray, timings: dict[str, float]) -> AngleObservation:
+        """Locate (block averages of the raw image), undistort the box around the target,
+        MSER and ellipse there."""
+        t0 = time.perf_counter()
+        cam = self.undistort.camera
+        raw_box = locate_target(image, self.config.region)
+        t1 = time.perf_counter()
+        timings["locate"] = 1e3 * (t1 - t0)
+        if raw_box is None:
+            timings["undistort"] = timings["region"] = 0.0
+            return AngleObservation.failed("spin: no bright region")
+        box = self._undistorted_box(raw_box)
+        prepared = self.undistort.crop(image, box)
+        t2 = time.perf_counter()
+        timings["undistort"] = 1e3 * (t2 - t1)
+        if prepared.problem is not None:
+            timings["region"] = 0.0
+            return AngleObservation.failed(f"spin: image {prepared.problem}")
+        size = (cam.width, cam.height)
+        obs = measure_angle(
+            prepared.gray8, self.config.region, origin=(box[0], box[1]), image_size=size
+        )
+        timings["region"] = 1e3 * (time.perf_counter() - t2)
+        return obs
+
+    def _undistorted_box(self, raw: Box) -> Box:
+        """The box (exclusive end) of the undistorted image covering the raw image's box."""
+        cam = self.undistort.camera
+        x0, y0, x1, y1 = raw
+        s = np.linspace(0.0, 1.0, 5)
+        edge = np.concatenate(
+            [
+                np.c_[x0 + s * (x1 - x0), np.full(5, y0)],
+                np.c_[x0 + s * (x1 - x0), np.full(5, y1)],
+                np.c_[np.full(5, x0), y0 + s * (y1 - y0)],
+                np.c_[np.full(5, x1), y0 + s * (y1 - y0)],
+            ]
+        )
+        if cam.has_distortion:
+            edge = self.undistort.undistort_points(edge)
+        lo = np.floor(edge.min(axis=0)) - 1
+        hi = np.ceil(edge.max(axis=0)) + 2
+        return (
+            max(int(lo[0]), 0),
+            max(int(lo[1]), 0),
+            min(int(hi[0]), cam.width),
+            min(int(hi[1]), cam.height),
+        )
+
+    def process_frame(self, frame: Frame) -> FrameMeasurements:
+        """`process` on a sequence frame (its left, or only, image)."""
+        return self.process(frame.index, frame.t_s, frame.left())
+
+    def process(self, frame: int, t_s: float, image: np.ndarray) -> FrameMeasurements:
+        """One frame: ``image`` (H, W) grey or (H, W, 3) BGR, uint8 or uint16, as stored.
+
+        Returns:
+            The frame's measurements: ``spin`` once the buffer is full (accepted or refused),
+            ``failures`` when the frame has no usable angle, per-stage ``timings_ms``.
+        """
+        timings: dict[str, float] = {}
+        obs = self._angle(image, timings)
+        t0 = time.perf_counter()
+        fit = self.rate.add(t_s, obs.angle_rad)
+        timings["rate"] = 1e3 * (time.perf_counter() - t0)
+        if self.hook is not None:
+            self.hook(SpinStep(frame=frame, t_s=t_s, angle=obs, fit=fit))
+        failures = () if obs.failure is None else (obs.failure,)
+        return FrameMeasurements(
+            frame=frame,
+            t_s=t_s,
+            failures=failures,
+            timings_ms=timings,
+            spin=None if fit is None else fit.measurement(),
+        )
