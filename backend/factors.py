@@ -39,6 +39,14 @@ Tightly coupled (``coupling = "tight"``):
 - `gauge_factor` (Python): the last gauge freedom (rotation about the ring normal): the anchor
   landmark has ``y = 0`` in the target frame (x toward the anchor projected on the ring plane,
   as the frontend's `TargetFrameTracker` defines it).
+
+Either coupling:
+
+- `spin_rate_factor` (Python, analytic Jacobian): the spin rate a single camera measured over
+  a window of frames (seed 001): ``e = |omega_i| - r`` (1,) on the twist ``V(i)`` of the frame
+  the measurement arrives with, standard deviation ``sigma``. The rate is a magnitude, so it
+  constrains the twist whatever target frame the graph uses; it combines with stereo
+  tracking wherever both exist.
 """
 
 from __future__ import annotations
@@ -53,7 +61,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from satpose.backend.errors import BackendError
-from satpose.backend.keys import L, R, X
+from satpose.backend.keys import L, R, V, X
 from satpose.backend.pose3 import (
     ROT,
     TRANS,
@@ -69,6 +77,7 @@ from satpose.frontend.measurements import (
     LandmarkMeasurement,
     PoseMeasurement,
     RingMeasurement,
+    SpinRateMeasurement,
 )
 
 E_Z = np.array([0.0, 0.0, 1.0])
@@ -107,6 +116,10 @@ class MeasurementConfig:
             the x axis (same rule as the frontend's ``PoseConfig.min_axis_distance_m``).
         gauge_sigma_m: standard deviation of the anchor's ``y = 0`` constraint [m]
             (effectively hard).
+        spin_rate: turn accepted spin-rate measurements (`FrameMeasurements.spin`) into
+            factors on ``|omega|``. Only windows disjoint from the last one used are taken:
+            consecutive sliding windows share all but one frame, and as independent factors
+            they would count the same angles up to ``n`` times.
     """
 
     coupling: Literal["loose", "tight"] = "tight"
@@ -122,6 +135,7 @@ class MeasurementConfig:
     gauge_sigma_m: float = 1e-6
     ring_circle_gap: float = 0.04
     max_orb_per_frame: int | None = 20
+    spin_rate: bool = True
 
     def __post_init__(self) -> None:
         if self.coupling not in ("loose", "tight"):
@@ -348,6 +362,43 @@ def gauge_factor(track_id: int, config: MeasurementConfig) -> gtsam.CustomFactor
     return gtsam.CustomFactor(
         gtsam.noiseModel.Isotropic.Sigma(1, config.gauge_sigma_m), [L(track_id)], error
     )
+
+
+# --------------------------------------------------------------------------------------------
+# Either coupling
+# --------------------------------------------------------------------------------------------
+
+
+def spin_rate_factor(
+    m: SpinRateMeasurement, i: int, config: MeasurementConfig, clock: FactorClock | None = None
+) -> gtsam.CustomFactor:
+    """``|omega_i| - r`` on the twist ``V(i) = [omega, v]`` (1,), noise ``sigma_rad_s``.
+
+    Jacobian ``[omega^T / |omega|, 0, 0, 0]`` (1x6). ``|omega|`` has no derivative at
+    ``omega = 0``; there the Jacobian takes the target x axis (any unit vector is a
+    subgradient), so a Gauss-Newton step still moves the rate toward ``r``.
+
+    Raises:
+        BackendError: the measurement was refused (``status != ok``): it has no rate to use.
+    """
+    if not m.ok:
+        raise BackendError(f"a refused spin rate ({m.status}) cannot become a factor")
+    r = float(m.rate_rad_s)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
+        t0 = clock.start() if clock is not None else 0.0
+        w = values.atVector(this.keys()[0])[ROT]
+        n = float(np.linalg.norm(w))
+        if H is not None:
+            Hv = np.zeros((1, 6), order="F")
+            Hv[0, ROT] = w / n if n > 1e-12 else np.array([1.0, 0.0, 0.0])
+            H[0] = Hv
+        if clock is not None:
+            clock.stop(t0)
+        return np.array([n - r])
+
+    noise = robust(gtsam.noiseModel.Isotropic.Sigma(1, float(m.sigma_rad_s)), 1, config)
+    return gtsam.CustomFactor(noise, [V(i)], error)
 
 
 # --------------------------------------------------------------------------------------------

@@ -4,6 +4,9 @@ States: ``X(i)`` (``target_from_left_cam``, see `satpose.backend.pose3`) and ``V
 twist) for the ``i``-th frame added; in tight coupling also ``L(j)`` (landmarks, target frame)
 and ``R(k)`` (the radius of each circle of the ring the frontend measured).
 
+An accepted spin rate (`FrameMeasurements.spin`, one camera) adds a factor on ``|omega|`` of
+the frame's twist in either coupling, for windows disjoint from the last one used.
+
 The graph starts at the first frame that can fix the target frame — one with a pose (loose
 coupling) or with the ring and a landmark usable as the x-axis anchor (tight coupling).
 Frames added before it are kept and receive states then, tied to it by the motion prior only,
@@ -34,6 +37,7 @@ from satpose.backend.factors import (
     pose_factor,
     ring_factor,
     ring_radius_factor,
+    spin_rate_factor,
 )
 from satpose.backend.keys import L, R, V, X
 from satpose.backend.motion import (
@@ -92,6 +96,7 @@ class GraphBuilder:
         self.circles: list[list[float]] = []  # the radii measured of each circle of the ring
         self.full_frames = 0  # frames whose measurements fix a whole pose
         self._pending: list[FrameMeasurements] = []
+        self._spin_until_s = -np.inf  # end of the last spin-rate window used
         self._hint: dict[int, tuple[Rigid3, np.ndarray]] = {}
         self._hint_cov: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         # tight coupling: the frontend's target frame relative to the graph's gauge, from the
@@ -261,6 +266,15 @@ class GraphBuilder:
         return best
 
     def _measurement_factors(self, i: int, m: FrameMeasurements, update: GraphUpdate) -> None:
+        spin = m.spin
+        if (
+            self.config.spin_rate
+            and spin is not None
+            and spin.ok
+            and spin.window_start_s > self._spin_until_s
+        ):
+            update.factors.push_back(spin_rate_factor(spin, i, self.config, self.clock))
+            self._spin_until_s = spin.window_end_s
         if self.config.coupling == "loose":
             if m.pose is not None:
                 update.factors.push_back(pose_factor(m.pose, i, self.config))
