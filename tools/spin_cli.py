@@ -1,0 +1,288 @@
+"""``satpose spin SEQUENCE --out DIR``: the spin rate of a far target from one camera (seed 001).
+
+Runs `satpose.frontend.spin.SpinFrontend` over the sequence's left (or only) images, prints the
+rate series and writes into DIR (each file atomically):
+
+- ``spin.csv``: ``t_s,rate_deg_s,sigma_deg_s,status`` — one row per estimate (every frame once
+  the buffer is full); ``t_s`` is the last frame of the window; ``status`` is ``ok`` or the
+  refusal (`satpose.frontend.measurements.SpinStatus`), whose reason is printed; rate and
+  sigma are empty when a refusal has no candidate.
+- ``spin_angles.csv``: ``frame,t_s,theta_deg,elongation,failure`` — the per-frame silhouette
+  angle ``theta'`` the rate comes from.
+- ``spin.png``: ``theta'`` over the sequence with the fitted model, a close-up of the last
+  window, and the rate with its 1-sigma bars (and the truth when groundtruth.csv has it).
+- ``measurements.parquet`` (the frontend -> backend contract, `tools.files`) and
+  ``config.yaml`` (the resolved config).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import yaml
+
+from satpose.datasets.errors import SequenceError
+
+if TYPE_CHECKING:  # the frontend (OpenCV) loads only when the command runs
+    from satpose.frontend.measurements import FrameMeasurements
+    from satpose.frontend.spin import SpinFit, SpinStep
+
+SPIN_CSV_COLUMNS = ("t_s", "rate_deg_s", "sigma_deg_s", "status")
+
+
+def register(subparsers: Any) -> None:
+    """Add ``satpose spin`` to the ``satpose`` command line (see `satpose.tools.cli`)."""
+    p = subparsers.add_parser(
+        "spin",
+        help="spin rate of a far, fast-spinning target from one camera (seed 001)",
+        description="Measure the spin rate of a far target from its silhouette in one "
+        "camera's images (MSER region, ellipse, angle; the paper's two-sine fit over a "
+        "sliding buffer). Uses the left images of a stereo sequence. Writes spin.csv, "
+        "spin_angles.csv, spin.png, measurements.parquet and config.yaml into DIR.",
+    )
+    p.add_argument("sequence", type=Path, metavar="SEQUENCE", help="sequence folder")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    p.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE",
+        help="YAML/TOML spin config (region, rate, preprocess; unknown keys are refused), "
+        "e.g. rate: {window_frames: 30, model: projection}",
+    )
+    p.set_defaults(handler=cmd_spin)
+
+
+def cmd_spin(args: argparse.Namespace) -> None:
+    run_spin_on(args.sequence, args.out, args.config)
+
+
+@dataclass(frozen=True)
+class SpinRun:
+    """What `run_spin_on` produced: every frame's step and measurements, and the files."""
+
+    steps: list[SpinStep]
+    measurements: list[FrameMeasurements]
+    files: list[Path]
+
+
+def run_spin_on(sequence_path: Path, out: Path, config_path: Path | None) -> SpinRun:
+    """The spin frontend over a whole sequence, with a progress bar; prints the rate series
+    and writes the result files (see the module docstring)."""
+    from tqdm import tqdm
+
+    from satpose.datasets.config import load_config, to_plain
+    from satpose.datasets.sequence import load_sequence
+    from satpose.frontend.spin import SpinConfig, SpinFrontend
+    from satpose.tools.files import atomic_write, prepare_out, write_measurements
+
+    seq = load_sequence(sequence_path)
+    config = load_config(SpinConfig, config_path) if config_path else SpinConfig()
+    n = config.rate.window_frames
+    if len(seq) < n:
+        raise SequenceError(
+            seq.root / "frames.csv",
+            "frame",
+            f"{len(seq)} frames, but the spin buffer needs {n} (rate.window_frames)",
+        )
+    prepare_out(out)
+    steps: list[SpinStep] = []
+    frontend = SpinFrontend(seq.calibration.left, config, hook=steps.append)
+    results = [
+        frontend.process_frame(frame)
+        for frame in tqdm(
+            seq,
+            desc=f"spin {seq.name}",
+            unit="frame",
+            file=sys.stderr,
+            dynamic_ncols=True,
+            delay=0.5,
+        )
+    ]
+    files = [
+        atomic_write(out / "spin.csv", lambda tmp: Path(tmp).write_text(spin_csv(steps))),
+        atomic_write(out / "spin_angles.csv", lambda tmp: Path(tmp).write_text(angles_csv(steps))),
+        write_measurements(results, out / "measurements.parquet"),
+        atomic_write(
+            out / "config.yaml",
+            lambda tmp: Path(tmp).write_text(
+                yaml.safe_dump({"spin": to_plain(config)}, sort_keys=False)
+            ),
+        ),
+    ]
+    truth = None
+    if seq.truth is not None and seq.truth.angular_velocity is not None:
+        truth = (seq.truth.t_s, np.degrees(np.linalg.norm(seq.truth.angular_velocity, axis=1)))
+    files.append(atomic_write(out / "spin.png", lambda tmp: plot_spin(steps, tmp, seq.name, truth)))
+    print(rate_series_text(steps))
+    fits = [s.fit for s in steps if s.fit is not None]
+    ok = [f for f in fits if f.ok]
+    summary = f"{len(fits)} estimates, {len(ok)} accepted"
+    if ok:
+        rates = np.degrees([f.rate_rad_s for f in ok])
+        summary += f": mean {rates.mean():.3f} deg/s, std {rates.std():.3f} deg/s"
+    print(f"{summary}; wrote {', '.join(str(f) for f in files)}")
+    return SpinRun(steps, results, files)
+
+
+def _num(x: float, digits: int = 6) -> str:
+    return f"{x:.{digits}f}" if math.isfinite(x) else ""
+
+
+def spin_csv(steps: list[SpinStep]) -> str:
+    """spin.csv: one row per estimate, columns `SPIN_CSV_COLUMNS`."""
+    lines = [",".join(SPIN_CSV_COLUMNS)]
+    for s in steps:
+        if s.fit is None:
+            continue
+        f = s.fit
+        lines.append(
+            f"{s.t_s:.6f},{_num(math.degrees(f.rate_rad_s))},"
+            f"{_num(math.degrees(f.sigma_rad_s))},{f.status.value}"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def angles_csv(steps: list[SpinStep]) -> str:
+    """spin_angles.csv: every frame's ``theta'`` [deg], elongation and failure reason."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["frame", "t_s", "theta_deg", "elongation", "failure"])
+    for s in steps:
+        a = s.angle
+        w.writerow(
+            [
+                s.frame,
+                f"{s.t_s:.6f}",
+                _num(math.degrees(a.angle_rad), 4),
+                _num(a.elongation, 4),
+                a.failure or "",
+            ]
+        )
+    return buf.getvalue()
+
+
+def rate_series_text(steps: list[SpinStep]) -> str:
+    """One line per estimate: time, rate +- sigma [deg/s], status and reason."""
+    lines = []
+    for s in steps:
+        f = s.fit
+        if f is None:
+            continue
+        if f.ok:
+            lines.append(
+                f"t = {s.t_s:8.2f} s  {math.degrees(f.rate_rad_s):9.4f} +- "
+                f"{math.degrees(f.sigma_rad_s):.4f} deg/s  ok"
+            )
+        else:
+            cand = (
+                f"{math.degrees(f.rate_rad_s):9.4f} deg/s"
+                if math.isfinite(f.rate_rad_s)
+                else " " * 15
+            )
+            lines.append(f"t = {s.t_s:8.2f} s  {cand}  {f.status.value}: {f.reason}")
+    return "\n".join(lines)
+
+
+def _unjoined(theta_deg: np.ndarray) -> np.ndarray:
+    """NaN where the angle wraps from 180 to 0 deg, so that a line plot does not join them."""
+    out = np.array(theta_deg, dtype=float)
+    jumps = np.flatnonzero(np.abs(np.diff(out)) > 90.0)
+    out[jumps + 1] = np.nan
+    return out
+
+
+def plot_spin(
+    steps: list[SpinStep],
+    path: str | Path,
+    title: str,
+    truth: tuple[np.ndarray, np.ndarray] | None = None,
+) -> None:
+    """The spin plot (PNG): ``theta'`` with the fitted model of disjoint windows, the last
+    window close up, and the rate series with 1-sigma bars."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.array([s.t_s for s in steps])
+    theta = np.degrees([s.angle.angle_rad for s in steps])
+    fits: list[tuple[float, SpinFit]] = [(s.t_s, s.fit) for s in steps if s.fit is not None]
+    fig, axes = plt.subplots(3, 1, figsize=(10, 10), constrained_layout=True)
+    ax = axes[0]
+    ax.plot(t, theta, ".", ms=4, color="C0", label="theta' (measured)")
+    bad = ~np.isfinite(theta)
+    if bad.any():
+        ax.plot(t[bad], np.zeros(bad.sum()), "x", color="C3", label="no angle")
+    # Fitted model of windows that do not overlap (the last one always shown).
+    shown_until = -math.inf
+    labelled = False
+    for k, (_, f) in enumerate(fits):
+        if not f.model or (f.window_start_s <= shown_until and k != len(fits) - 1):
+            continue
+        tt = np.linspace(f.window_start_s, f.window_end_s, 400)
+        ax.plot(
+            tt,
+            _unjoined(np.degrees(f.angle(tt))),
+            "-",
+            lw=0.6,
+            color="C1",
+            label=None if labelled else f"fit ({f.model})",
+        )
+        labelled = True
+        shown_until = f.window_end_s
+    ax.set(xlabel="t [s]", ylabel="theta' [deg]", ylim=(-5, 185), title=f"{title}: theta'")
+    ax.legend(loc="upper right", fontsize=8)
+
+    ax = axes[1]
+    last = next((f for _, f in reversed(fits) if f.model), None)
+    if last is not None:
+        inside = (t >= last.window_start_s) & (t <= last.window_end_s)
+        tt = np.linspace(last.window_start_s, last.window_end_s, 2000)
+        ax.plot(tt, _unjoined(np.degrees(last.angle(tt))), "-", lw=0.8, color="C1", label="fit")
+        ax.plot(t[inside], theta[inside], "o", ms=5, color="C0", label="theta'")
+        rate = math.degrees(last.rate_rad_s)
+        ax.set_title(
+            f"last window ({last.window_start_s:g}-{last.window_end_s:g} s): "
+            f"{rate:.4f} deg/s, {last.status.value}"
+        )
+        ax.legend(loc="upper right", fontsize=8)
+    ax.set(xlabel="t [s]", ylabel="theta' [deg]", ylim=(-5, 185))
+
+    ax = axes[2]
+    ok = [(tk, f) for tk, f in fits if f.ok]
+    if ok:
+        ax.errorbar(
+            [tk for tk, _ in ok],
+            [math.degrees(f.rate_rad_s) for _, f in ok],
+            yerr=[math.degrees(f.sigma_rad_s) for _, f in ok],
+            fmt=".",
+            ms=4,
+            capsize=2,
+            color="C0",
+            label="rate +- 1 sigma",
+        )
+    refused = [(tk, f) for tk, f in fits if not f.ok and math.isfinite(f.rate_rad_s)]
+    if refused:
+        ax.plot(
+            [tk for tk, _ in refused],
+            [math.degrees(f.rate_rad_s) for _, f in refused],
+            "x",
+            color="C3",
+            label="refused (candidate)",
+        )
+    if truth is not None:
+        ax.plot(truth[0], truth[1], "--", color="k", lw=1, label="truth (groundtruth.csv)")
+    ax.set(xlabel="t [s] (end of window)", ylabel="spin rate [deg/s]", title="spin rate")
+    ax.ticklabel_format(axis="y", useOffset=False)
+    if ok or refused or truth is not None:
+        ax.legend(loc="best", fontsize=8)
+    fig.savefig(path, format="png", dpi=100)
+    plt.close(fig)
