@@ -573,7 +573,13 @@ def _wrap_half(a: np.ndarray) -> np.ndarray:
 
 def _design(tau: np.ndarray, b1: float, b2: float) -> np.ndarray:
     """(N, 4) basis ``[sin b1 t, cos b1 t, sin b2 t, cos b2 t]``."""
-    return np.column_stack([np.sin(b1 * tau), np.cos(b1 * tau), np.sin(b2 * tau), np.cos(b2 * tau)])
+    A = np.empty((tau.size, 4))
+    x1, x2 = b1 * tau, b2 * tau
+    np.sin(x1, out=A[:, 0])
+    np.cos(x1, out=A[:, 1])
+    np.sin(x2, out=A[:, 2])
+    np.cos(x2, out=A[:, 3])
+    return A
 
 
 def _solve_linear(A: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, float]:
@@ -633,13 +639,19 @@ def _two_sine_fit(
         H, g = J.T @ J, J.T @ r
         improved = False
         for _ in range(8):
-            dp = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), -g)
+            D = H + lam * np.diag(np.diag(H) + 1e-12)
+            dp = np.linalg.solve(D, -g)
+            if not b1_lo <= b1 + dp[0] <= b1_hi:
+                # b1 at its bound (the long term wants a longer period): hold it there
+                dp = np.concatenate([[0.0], np.linalg.solve(D[1:, 1:], -g[1:])])
             nb1 = float(np.clip(b1 + dp[0], b1_lo, b1_hi))
             nb2 = b2 + float(dp[1])
             nC = C + dp[2:].reshape(2, 4)
             new_cost = float(np.sum(((_design(tau, nb1, nb2) @ nC.T).T.ravel() - y) ** 2))
             if new_cost <= cost:
-                improved = cost - new_cost > 1e-14 * cost + 1e-30
+                # converged when b2 (the rate) stops moving and the cost stops falling; b1
+                # and the long-period amplitudes may drift along flat directions for long
+                improved = abs(dp[1]) > 1e-8 * bin_rad_s or cost - new_cost > 1e-9 * cost
                 b1, b2, C, cost = nb1, nb2, nC, new_cost
                 lam = max(lam / 10.0, 1e-9)
                 break

@@ -121,6 +121,12 @@ def run_spin_on(sequence_path: Path, out: Path, config_path: Path | None) -> Spi
     if seq.truth is not None and seq.truth.angular_velocity is not None:
         truth = (seq.truth.t_s, np.degrees(np.linalg.norm(seq.truth.angular_velocity, axis=1)))
     files.append(atomic_write(out / "spin.png", lambda tmp: plot_spin(steps, tmp, seq.name, truth)))
+    if config.rate.max_rate_deg_s is None:
+        print(
+            f"rates fold at 90 deg per frame ({90.0 * seq.rate_hz:g} deg/s at "
+            f"{seq.rate_hz:g} frames/s): a faster spin is reported folded unless "
+            "rate.max_rate_deg_s says it is possible"
+        )
     print(rate_series_text(steps))
     fits = [s.fit for s in steps if s.fit is not None]
     ok = [f for f in fits if f.ok]
