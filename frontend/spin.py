@@ -23,7 +23,8 @@ Over a sliding buffer of the last ``n`` frames (seed 001: ``n = 19``):
    with shared ``b1`` (long period: drift from lighting and geometry) and ``b2`` (short period:
    the spin), separate amplitudes and phases; the spin rate is ``omega = b2 / 2`` (eq. 10 with
    ``t`` in seconds). Its standard deviation propagates the per-frame angle noise, estimated
-   from the angle residuals, through the least-squares solution.
+   from the angle residuals, through the least-squares solution. ``RateConfig.model =
+   "projection"`` fits eq. 8 generalised to an oblique spin axis instead (docs/spin.md).
 6. Refusals, each with a reason: too few usable frames; the angle turning too slowly for the
    window; a rate too close to the fold at ``90 deg * frame rate`` (beyond it the sampled angle
    of a rate ``omega`` equals that of ``180 deg * f - omega``; with ``max_rate_deg_s`` above the
@@ -145,6 +146,12 @@ class RateConfig:
             spinning or round). Random angles reach at most ~0.75 with n = 19.
         max_angle_noise_deg: largest standard deviation of ``theta'`` about the fit [deg],
             else ``geometry`` (random angles scatter by 20 deg and more).
+        max_axis_angle_deg: ``projection`` model only: largest fitted angle between the spin
+            axis and the line of sight (``acos |c|``) [deg], else ``geometry``. Closer to the
+            spin plane the outline mostly changes length, the major axis jumps between the
+            wings and the bus, and the model's sigma is too small (docs/spin.md: at 78 deg
+            the errors are 3-5 sigma). The two-sine model is refused there by
+            ``min_explained``.
         min_spread_deg: circular standard deviation ``theta'`` must reach over the buffer
             [deg], else ``geometry`` (the angle hardly moves).
         max_peak_shift_bins: the fitted rate may leave the spectral peak by at most this many
@@ -160,6 +167,7 @@ class RateConfig:
     model: Literal["two-sine", "projection"] = "two-sine"
     min_explained: float = 0.85
     max_angle_noise_deg: float = 15.0
+    max_axis_angle_deg: float = 70.0
     min_spread_deg: float = 3.0
     max_peak_shift_bins: float = 1.0
 
@@ -181,6 +189,8 @@ class RateConfig:
             raise ConfigError("spin.rate: min_explained in [0, 1), min_spread_deg >= 0")
         if not self.max_angle_noise_deg > 0:
             raise ConfigError("spin.rate.max_angle_noise_deg must be positive")
+        if not 0 < self.max_axis_angle_deg <= 90:
+            raise ConfigError("spin.rate.max_axis_angle_deg must be in (0, 90]")
         if self.model not in MODEL_PARAMETERS:
             raise ConfigError(
                 f"spin.rate.model must be one of {sorted(MODEL_PARAMETERS)}, got {self.model!r}"
@@ -902,6 +912,15 @@ def estimate_spin_rate(
             f"{math.degrees(noise):.1f} deg about it (maximum {cfg.max_angle_noise_deg:g}): "
             "line of sight near the spin plane, or the target not spinning or not elongated",
         )
+    if cfg.model == "projection":
+        axis_deg = math.degrees(math.acos(min(abs(float(params[1])), 1.0)))
+        if axis_deg > cfg.max_axis_angle_deg:
+            return refuse(
+                SpinStatus.GEOMETRY,
+                f"the spin axis is {axis_deg:.0f} deg from the line of sight (more than "
+                f"{cfg.max_axis_angle_deg:g}): near the spin plane the outline mostly changes "
+                "length instead of turning",
+            )
     if fold - rate < cfg.fold_guard_sigma * sigma:
         return refuse(
             SpinStatus.ALIASING,

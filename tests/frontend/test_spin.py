@@ -73,7 +73,7 @@ def test_noise_free_axis_along_line_of_sight_is_exact(model: str, rate: float) -
     assert fit.window_start_s == 0.0 and fit.window_end_s == 18.0 and fit.samples == 19
 
 
-@pytest.mark.parametrize("c", [0.8, 0.5, -0.3])
+@pytest.mark.parametrize("c", [0.8, 0.5, -0.4])
 @pytest.mark.parametrize("rate", [23.0, 71.0])
 def test_noise_free_oblique_axis_is_exact_for_the_projection_model(c: float, rate: float) -> None:
     t, a = turning_line(rate, c)
@@ -207,6 +207,16 @@ def test_constant_angle_is_a_geometry_refusal() -> None:
     t = np.arange(19.0)
     fit = estimate_spin_rate(t, 1.0 + rng.normal(0, math.radians(0.5), 19))
     assert fit.status is SpinStatus.GEOMETRY and "hardly changes" in fit.reason
+
+
+def test_line_of_sight_near_the_spin_plane_is_a_geometry_refusal() -> None:
+    """The projection model measures the axis angle (acos |c|) and refuses beyond 70 deg,
+    even on a clean series; the two-sine model's own refusal there is its poor fit."""
+    t, a = turning_line(40.0, 0.2)  # acos(0.2) = 78.5 deg from the line of sight
+    fit = estimate_spin_rate(t, a, RateConfig(model="projection"))
+    assert fit.status is SpinStatus.GEOMETRY and "78 deg from the line of sight" in fit.reason
+    relaxed = estimate_spin_rate(t, a, RateConfig(model="projection", max_axis_angle_deg=80.0))
+    assert relaxed.ok and abs(math.degrees(relaxed.rate_rad_s) - 40.0) < EXACT_DEG_S
 
 
 def test_unstructured_angles_are_a_geometry_refusal() -> None:
