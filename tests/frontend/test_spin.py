@@ -215,8 +215,31 @@ def test_line_of_sight_near_the_spin_plane_is_a_geometry_refusal() -> None:
     t, a = turning_line(40.0, 0.2)  # acos(0.2) = 78.5 deg from the line of sight
     fit = estimate_spin_rate(t, a, RateConfig(model="projection"))
     assert fit.status is SpinStatus.GEOMETRY and "78 deg from the line of sight" in fit.reason
-    relaxed = estimate_spin_rate(t, a, RateConfig(model="projection", max_axis_angle_deg=80.0))
+    alone = RateConfig(model="projection", max_axis_angle_deg=80.0, cross_check=False)
+    relaxed = estimate_spin_rate(t, a, alone)
     assert relaxed.ok and abs(math.degrees(relaxed.rate_rad_s) - 40.0) < EXACT_DEG_S
+    # with the cross-check (default) the two-sine model's poor fit refuses it as well
+    checked = estimate_spin_rate(t, a, RateConfig(model="projection", max_axis_angle_deg=80.0))
+    assert checked.status is SpinStatus.GEOMETRY and "two-sine model explains" in checked.reason
+
+
+def test_cross_check_refuses_what_one_model_alone_accepts() -> None:
+    """Axis 72.5 deg from the line of sight (just beyond the projection model's 70 deg), 0.5 deg
+    noise: the two-sine model alone accepts a rate 0.3 deg/s off; the projection model's axis
+    check refuses the window, and with the cross-check (default) so does the estimate. Two
+    models that disagree by more than ``cross_check_sigma`` are refused too."""
+    rng = np.random.default_rng(7)
+    t, a = turning_line(30.0, 0.3, noise_deg=0.5, rng=rng)
+    alone = estimate_spin_rate(t, a, RateConfig(cross_check=False))
+    assert alone.ok and abs(math.degrees(alone.rate_rad_s) - 30.0) > 0.2
+    fit = estimate_spin_rate(t, a)
+    assert fit.status is SpinStatus.GEOMETRY
+    assert "projection model refuses" in fit.reason and "72 deg" in fit.reason
+    assert math.isfinite(fit.rate_rad_s)  # the refused candidate is kept for diagnostics
+    t, a = turning_line(40.0, 0.8, noise_deg=0.5, rng=rng)
+    assert estimate_spin_rate(t, a).ok
+    tight = estimate_spin_rate(t, a, RateConfig(cross_check_sigma=1e-6))
+    assert tight.status is SpinStatus.GEOMETRY and "disagree" in tight.reason
 
 
 def test_unstructured_angles_are_a_geometry_refusal() -> None:
@@ -236,6 +259,11 @@ def test_invalid_inputs_and_configs() -> None:
         estimate_spin_rate(np.arange(5.0), np.zeros(4))
     with pytest.raises(ConfigError, match="min_samples"):
         RateConfig(min_samples=9, model="two-sine")
+    with pytest.raises(ConfigError, match="cross_check fits both"):
+        RateConfig(min_samples=8, model="projection")
+    assert RateConfig(min_samples=8, model="projection", cross_check=False).min_samples == 8
+    with pytest.raises(ConfigError, match="cross_check_sigma"):
+        RateConfig(cross_check_sigma=0.0)
     with pytest.raises(ConfigError, match="model"):
         RateConfig(model="three-sine")  # type: ignore[arg-type]
     with pytest.raises(ConfigError):
