@@ -21,7 +21,6 @@ import argparse
 import math
 import os
 import platform
-import sys
 import time
 from collections import Counter
 from dataclasses import dataclass, replace
@@ -43,7 +42,14 @@ from satpose.frontend.spin import (
 )
 
 PAPER = (60.07, 0.05)  # seed 001: mean and std [deg/s] of its on-orbit run
-MODELS = ("two-sine", "projection")
+VARIANTS = {
+    "two-sine": RateConfig(),  # the default: the paper's model, cross-checked
+    "projection": RateConfig(model="projection"),
+    "two-sine alone": RateConfig(cross_check=False),  # seed 001's method without the check
+}
+MODELS = tuple(VARIANTS)
+TIMING_PASSES = 3  # passes over spin-far for the time per frame
+LONG_WINDOW = 55  # frames: enough for 1.5 theta' periods at 5 deg/s
 SWEEP_RATES_DEG_S = (5.0, 15.0, 25.0, 35.0, 45.0, 55.0, 65.0, 75.0, 85.0)
 SWEEP_FRAMES = 60
 SWEEP_SPP = 8
@@ -143,7 +149,8 @@ def extract_angles(seq: Sequence) -> Angles:
         cpu.append(1e3 * (time.thread_time() - c0))
         for k, v in m.timings_ms.items():
             stage.setdefault(k, []).append(v)
-    fails: Counter[str] = Counter(s.angle.failure for s in steps if s.angle.failure)
+    # failure kinds (without the per-frame numbers in parentheses)
+    fails: Counter[str] = Counter(s.angle.failure.split(" (")[0] for s in steps if s.angle.failure)
     return Angles(
         t_s=np.array([s.t_s for s in steps]),
         angle_rad=np.array([s.angle.angle_rad for s in steps]),
@@ -207,6 +214,60 @@ def fmt(x: float, digits: int = 3) -> str:
     return "-" if not math.isfinite(x) else f"{x:.{digits}f}"
 
 
+def stats_of(row: dict[str, object], key: str) -> RateStats:
+    r = row[key]
+    assert isinstance(r, RateStats)
+    return r
+
+
+def conditions_hold(row: dict[str, object]) -> bool:
+    """Seed 001's conditions: long axis perpendicular to the spin, elongated outline, spin axis
+    within 70 deg of the line of sight, theta' turning 1.5 times per 19-frame window."""
+    axis = next(a for a in (*AXES, BUS_ONLY) if a.name == row["axis"])
+    rate, los = row["rate"], row["axis_los"]
+    assert isinstance(rate, float) and isinstance(los, float)
+    return axis.off_normal_deg == 0 and axis.wings and los <= 70.0 and rate >= 15.0
+
+
+def targets(paper: dict[str, object], sweep: list[dict[str, object]]) -> list[str]:
+    """The issue's targets against the default estimator (`two-sine`, cross-checked)."""
+    r = paper["two-sine"]
+    assert isinstance(r, RateStats)
+    good = [stats_of(row, "two-sine") for row in sweep if conditions_hold(row)]
+    bad = [stats_of(row, "two-sine") for row in sweep if not conditions_hold(row)]
+    worst = max(abs(x.bias_deg_s) for x in good)
+    accepted = sum(x.ok for x in good)
+    windows = sum(x.windows for x in good)
+    leaked = sum(x.ok for x in bad)
+    leaked_windows = sum(x.windows for x in bad)
+    t = paper["timing"]
+    assert isinstance(t, dict)
+    cpu = t["cpu_frame"]
+
+    def verdict(ok: bool) -> str:
+        return "met" if ok else "**not met**"
+
+    return [
+        "## Targets (issue 7), default estimator",
+        "",
+        "| target | measured | |",
+        "|---|---|---|",
+        f"| paper's case: abs(mean - truth) <= 0.03 deg/s | {abs(r.bias_deg_s):.4f} deg/s | "
+        f"{verdict(abs(r.bias_deg_s) <= 0.03)} |",
+        f"| paper's case: std <= 0.05 deg/s | {r.std_deg_s:.4f} deg/s | "
+        f"{verdict(r.std_deg_s <= 0.05)} |",
+        f"| sweep where the conditions hold ({len(good)} sequences): abs(bias) <= 0.1 deg/s | "
+        f"worst {worst:.4f} deg/s; {accepted}/{windows} windows accepted | "
+        f"{verdict(worst <= 0.1)} |",
+        f"| sweep where they do not ({len(bad)} sequences: too slow for n = 19, axis > 70 deg "
+        f"from the line of sight, long axis leaning, no wings): a refusal, not a number | "
+        f"{leaked}/{leaked_windows} windows accepted | {verdict(leaked == 0)} |",
+        f"| time per frame <= 5 ms on one core (CPU, median; per frame the best of "
+        f"{TIMING_PASSES} passes) | {cpu:.2f} ms (first pass alone {t['cpu_frame_first']:.2f}) | "
+        f"{verdict(cpu <= 5.0)} |",
+    ]
+
+
 def markdown(
     paper: dict[str, object], sweep: list[dict[str, object]], fold: list[dict[str, object]]
 ) -> str:
@@ -219,7 +280,13 @@ def markdown(
         f"frame once the buffer holds n = {RateConfig().window_frames} frames (sliding "
         "windows, so consecutive estimates share 18 of 19 frames). `sigma` is the estimator's "
         "own standard deviation; `RMS z` the RMS of error / sigma (1 = honest, < 1 "
-        "conservative).",
+        "conservative). Variants: `two-sine` (the default: seed 001's model, accepted only "
+        "when the projection model fitted to the same window passes its own checks and agrees "
+        f"within {RateConfig().cross_check_sigma:g} combined sigma), `projection` (eq. 8 for an "
+        "oblique axis, cross-checked by the two-sine model in the same way), `two-sine alone` "
+        "(`cross_check: false`: seed 001's method without the check).",
+        "",
+        *targets(paper, sweep),
         "",
         "## The paper's case: `spin-far` (60 deg/s, 1 Hz, n = 19, 150 s)",
         "",
@@ -254,7 +321,7 @@ def markdown(
     ]
     for model in MODELS:
         lines += [
-            f"### Model `{model}`",
+            f"### `{model}`",
             "",
             "| axis | axis-LOS [deg] | rate [deg/s] | ok/all | bias [deg/s] | std [deg/s] | "
             "max abs err [deg/s] | median sigma [deg/s] | RMS z | refusals |",
@@ -271,6 +338,29 @@ def markdown(
             )
         lines.append("")
     lines += [
+        f"### Slow spins with a longer window (n = {LONG_WINDOW})",
+        "",
+        "With n = 19 at 1 Hz theta' must turn 1.5 times per window (about 14 deg/s); slower "
+        f"spins are refused as `too-slow`. The same sequences with n = {LONG_WINDOW} "
+        f"({SWEEP_FRAMES - LONG_WINDOW + 1} windows each):",
+        "",
+        "| axis | rate [deg/s] | model | ok/all | bias [deg/s] | std [deg/s] | "
+        "max abs err [deg/s] | median sigma [deg/s] | refusals |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in sweep:
+        for key in (f"two-sine, n = {LONG_WINDOW}", f"projection, n = {LONG_WINDOW}"):
+            if key not in row:
+                continue
+            r = stats_of(row, key)
+            refused = ", ".join(f"{k} {v}" for k, v in sorted(r.refusals.items())) or "-"
+            lines.append(
+                f"| {row['axis']} | {row['rate']:g} | {key.split(',')[0]} | {r.ok}/{r.windows} | "
+                f"{fmt(r.bias_deg_s)} | {fmt(r.std_deg_s)} | {fmt(r.max_abs_err_deg_s)} | "
+                f"{fmt(r.median_sigma_deg_s)} | {refused} |"
+            )
+    lines += [
+        "",
         "### Above the fold",
         "",
         "At 1 frame/s a spin of `omega` samples theta' exactly like `180 - omega` deg/s turning "
@@ -299,17 +389,17 @@ def markdown(
     seen = set()
     for row in sweep:
         for model in MODELS:
-            r = row[model]
-            assert isinstance(r, RateStats)
-            for status, reason in sorted(r.reasons.items()):
-                key = (row["axis"], row["rate"], status)
-                if key in seen:
+            for status, reason in sorted(stats_of(row, model).reasons.items()):
+                seen_key = (row["axis"], row["rate"], status)
+                if seen_key in seen:
                     continue
-                seen.add(key)
+                seen.add(seen_key)
                 lines.append(f"- `{row['axis']}` {row['rate']:g} deg/s, {status}: {reason}")
     fails = [(row["axis"], row["rate"], row["failures"]) for row in sweep if row["failures"]]
     lines += ["", "Frames without a usable angle:", ""]
-    lines += [f"- `{a}` {r:g} deg/s: {dict(f)}" for a, r, f in fails] or ["- none"]
+    lines += [f"- `{a}` {r:g} deg/s: {dict(f)}" for a, r, f in fails] or [  # type: ignore[call-overload]
+        "- none"
+    ]
     t = paper["timing"]
     assert isinstance(t, dict)
     frame_ms = t["locate"] + t["undistort"] + t["region"]
@@ -317,17 +407,20 @@ def markdown(
         "",
         "## Time per frame [ms] (`spin-far`, 1024x768, OpenCV on one thread)",
         "",
-        "| locate | undistort (box) | region + ellipse (MSER) | rate, two-sine | "
-        "rate, projection | frame, two-sine: CPU median / p95 |",
-        "|---|---|---|---|---|---|",
+        "| locate | undistort (box) | region + ellipse (MSER) | rate, two-sine (both fits) | "
+        "rate, two-sine alone | frame, default: CPU median / p95 (best of passes) | "
+        "frame: CPU median (first pass) |",
+        "|---|---|---|---|---|---|---|",
         f"| {t['locate']:.2f} | {t['undistort']:.2f} | {t['region']:.2f} | "
-        f"{t['two-sine']:.2f} | {t['projection']:.2f} | {t['cpu_frame']:.2f} / "
-        f"{t['cpu_frame_p95']:.2f} |",
+        f"{t['two-sine']:.2f} | {t['two-sine alone']:.2f} | {t['cpu_frame']:.2f} / "
+        f"{t['cpu_frame_p95']:.2f} | {t['cpu_frame_first']:.2f} |",
         "",
         "Stages: wall-clock medians from `FrameMeasurements.timings_ms` (the machine's 2 cores "
         "are shared with other jobs, so wall times include waiting); rates: CPU time of one "
-        "estimate over the 19-frame buffer; last column: CPU time of the whole frame "
-        f"(`time.thread_time`). Image stages sum to {frame_ms:.2f} ms. Reading the PNG is not "
+        "estimate over the 19-frame buffer; frame: CPU time of the whole frame "
+        f"(`time.thread_time`), per frame the least of {TIMING_PASSES} passes (others' jobs only "
+        f"add to it), and the first pass alone. Image stages sum to {frame_ms:.2f} ms. Reading "
+        "the PNG is not "
         "included.",
     ]
     return "\n".join(lines) + "\n"
@@ -345,6 +438,11 @@ def main() -> None:
     assert seq.truth is not None and seq.truth.angular_velocity is not None
     truth = float(np.degrees(np.linalg.norm(seq.truth.angular_velocity, axis=1)).mean())
     angles = extract_angles(seq)
+    # Timing passes: the CPU work per frame is the same in every pass, other jobs on the
+    # shared cores only add to it (cache and core sharing), so the per-frame minimum over
+    # passes is the closest to one idle core; the first pass's median is reported beside it.
+    passes = [angles.cpu_ms] + [extract_angles(seq).cpu_ms for _ in range(TIMING_PASSES - 1)]
+    cpu_min = np.min(np.array(passes), axis=0)
     paper: dict[str, object] = {
         "frames": len(seq),
         "size": f"{min(angles.size_px):.0f}-{max(angles.size_px):.0f}",
@@ -352,10 +450,11 @@ def main() -> None:
         "failed": int(np.sum(~np.isfinite(angles.angle_rad))),
     }
     timing = {k: float(np.median(v)) for k, v in angles.stage_ms.items() if k != "rate"}
-    timing["cpu_frame"] = float(np.median(angles.cpu_ms))
-    timing["cpu_frame_p95"] = float(np.percentile(angles.cpu_ms, 95))
+    timing["cpu_frame_first"] = float(np.median(angles.cpu_ms))
+    timing["cpu_frame"] = float(np.median(cpu_min))
+    timing["cpu_frame_p95"] = float(np.percentile(cpu_min, 95))
     for model in MODELS:
-        stats = run_rates(angles, truth, RateConfig(model=model))
+        stats = run_rates(angles, truth, VARIANTS[model])
         paper[model] = stats
         timing[model] = stats.rate_cpu_ms
         print(model, stats, flush=True)
@@ -373,7 +472,11 @@ def main() -> None:
             "failures": angles.failures,
         }
         for model in MODELS:
-            row[model] = run_rates(angles, rate, RateConfig(model=model))
+            row[model] = run_rates(angles, rate, VARIANTS[model])
+        if rate <= 15.0:
+            for model in ("two-sine", "projection"):
+                cfg = replace(VARIANTS[model], window_frames=LONG_WINDOW)
+                row[f"{model}, n = {LONG_WINDOW}"] = run_rates(angles, rate, cfg)
         print(axis.name, rate, {m: row[m] for m in MODELS}, flush=True)
         sweep.append(row)
     fold = []
@@ -398,4 +501,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()
