@@ -71,18 +71,7 @@ class Undistorter:
                 f"image of shape {img.shape} does not match the camera "
                 f"({self.camera.width}x{self.camera.height})"
             )
-        if img.dtype == np.uint8:
-            scale = 1 / 255.0
-        elif img.dtype == np.uint16:
-            scale = 1 / 65535.0
-        elif np.issubdtype(img.dtype, np.floating):
-            scale = 1.0
-            img = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)
-        else:
-            raise ImageError(f"unsupported pixel type {img.dtype}")
-        if img.ndim == 3:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-        gray = img.astype(np.float32) * np.float32(scale)
+        gray = self._gray(img)
         if self._maps is not None:
             gray = cv2.remap(
                 gray,
@@ -92,17 +81,7 @@ class Undistorter:
                 borderMode=cv2.BORDER_CONSTANT,
                 borderValue=0.0,
             )
-        # Rounded, saturated 8-bit copy (OpenCV: far faster than numpy's clip + astype).
-        gray8 = cv2.convertScaleAbs(np.maximum(gray, 0.0), alpha=255.0)
-        # Image checks from the 8-bit histogram (1/255 resolution is plenty for them).
-        hist = cv2.calcHist([gray8], [0], None, [256], [0, 256]).ravel()
-        cum = np.cumsum(hist) / gray8.size
-        problem = None
-        if np.searchsorted(cum, 0.995) / 255.0 < self.config.dark_level:
-            problem = "too dark"
-        elif 1.0 - cum[253] > self.config.saturated_fraction:  # pixels >= 254/255
-            problem = "saturated"
-        return PreparedImage(gray, gray8, problem)
+        return self._prepared(gray)
 
     def crop(self, image: np.ndarray, box: tuple[int, int, int, int]) -> PreparedImage:
         """`__call__` restricted to the undistorted pixels ``x0 <= x < x1, y0 <= y < y1``
@@ -166,12 +145,17 @@ class Undistorter:
         return img.astype(np.float32) * np.float32(scale)
 
     def _prepared(self, gray: np.ndarray) -> PreparedImage:
+        """The 8-bit copy and the image checks of an undistorted grey image."""
+        # Rounded, saturated 8-bit copy (OpenCV: far faster than numpy's clip + astype).
+        gray8 = cv2.convertScaleAbs(np.maximum(gray, 0.0), alpha=255.0)
+        # Image checks from the 8-bit histogram (1/255 resolution is plenty for them).
+        hist = cv2.calcHist([gray8], [0], None, [256], [0, 256]).ravel()
+        cum = np.cumsum(hist) / gray8.size
         problem = None
-        if float(np.percentile(gray, 99.5)) < self.config.dark_level:
+        if np.searchsorted(cum, 0.995) / 255.0 < self.config.dark_level:
             problem = "too dark"
-        elif float(np.mean(gray >= 0.995)) > self.config.saturated_fraction:
+        elif 1.0 - cum[253] > self.config.saturated_fraction:  # pixels >= 254/255
             problem = "saturated"
-        gray8 = np.clip(gray * 255.0 + 0.5, 0, 255).astype(np.uint8)
         return PreparedImage(gray, gray8, problem)
 
     def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
