@@ -10,7 +10,9 @@ from it, the pixel fires an event (polarity ON for an increase) and ``L_ref`` mo
 The log intensity is sampled at steps short enough that a star moves at most ``max_step_px``,
 and event times are linearly interpolated between samples. Per-pixel thresholds are drawn once
 (``N(C, sigma_C)``, the fixed-pattern mismatch); an event within ``refractory_s`` of the
-pixel's previous one is lost (its level crossing still moves ``L_ref``); background activity
+pixel's previous one is lost (its level crossing still moves ``L_ref``); a level must be passed, not just reached (a pixel
+whose star has gone returns exactly to its starting level and does not fire the last OFF
+event there); background activity
 adds Poisson noise events of random polarity at ``noise_rate_hz`` per pixel. Only pixels near a
 star change, so only those are evaluated.
 
@@ -33,6 +35,10 @@ from scipy.special import ndtr
 from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.sky import StarCatalogue, project_stars
+
+
+TIE_LOG = 1e-9
+"""Log-intensity margin by which a threshold level must be passed to fire (tie breaking)."""
 
 
 class EventError(SatposeError):
@@ -277,8 +283,11 @@ def simulate_events(
         L_old = L_now[pix]
         d = L_new_full - L_ref[pix]
         con, coff = c_on[pix], c_off[pix]
-        n_on = np.floor(np.maximum(d, 0) / con).astype(np.int64)
-        n_off = np.floor(np.maximum(-d, 0) / coff).astype(np.int64)
+        # A level is crossed only when passed by more than TIE_LOG: a pixel whose star has left
+        # returns exactly to its starting log intensity, and floating-point ties must not
+        # decide whether that fires (a real pixel's intensity never returns exactly).
+        n_on = np.floor(np.maximum(d - TIE_LOG, 0) / con).astype(np.int64)
+        n_off = np.floor(np.maximum(-d - TIE_LOG, 0) / coff).astype(np.int64)
         for pol, n, c, sign in ((1, n_on, con, 1.0), (0, n_off, coff, -1.0)):
             sel = np.flatnonzero(n > 0)
             if sel.size == 0:

@@ -132,6 +132,28 @@ class Spots:
         return int(self.px.shape[0])
 
 
+def peak_on_events(x: np.ndarray, y: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Mask of ON events followed (at the same pixel, in these time-sorted events) by an OFF
+    event: the crossing of a pixel's highest level while a star passes.
+
+    A passing star makes a pixel cross levels ``L0 + C, ..., L0 + nC`` going up (ON) and
+    ``L0 + (n-1)C, ..., L0 + C`` coming down (OFF; the last level ``L0`` is reached, not
+    passed). Without the top ON event the ON and OFF sets mirror each other in time, so their
+    centroids straddle the star symmetrically; with it the ON centroid is pulled toward the
+    star and the balanced centroid lags behind the motion. The next event of a pixel comes
+    tens of milliseconds later, so this runs on the whole stream (`run_event_tracker`), not
+    per window: an online system would know a peak only once that OFF event has arrived.
+    """
+    pix = y.astype(np.int64) * 65536 + x.astype(np.int64)
+    order = np.argsort(pix, kind="stable")  # time order kept within a pixel
+    ps, pp = pix[order], p[order]
+    peak_sorted = np.zeros(order.size, dtype=bool)
+    peak_sorted[:-1] = (ps[:-1] == ps[1:]) & (pp[:-1] == 1) & (pp[1:] == 0)
+    peak = np.zeros(order.size, dtype=bool)
+    peak[order] = peak_sorted
+    return peak
+
+
 def _balanced_centroids(
     lab: np.ndarray, n: int, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -267,6 +289,8 @@ class StarTrackerConfig:
         centroid_sigma_px: assumed per-star centroid noise (weights, covariance).
         outlier_sigma: residual gate (in centroid sigmas) after the first Wahba solve.
         rate_history: windows over which the rate for the prediction is differenced.
+        drop_peak_on: leave each pixel's top-level ON event out (`peak_on_events`; needs the
+            pixel's next event, so it is decided on the whole stream).
         mag_limit: faintest catalogue star predicted in tracking.
         epoch_yr: epoch of the solver catalogue.
     """
@@ -279,6 +303,7 @@ class StarTrackerConfig:
     centroid_sigma_px: float = 0.35
     outlier_sigma: float = 5.0
     rate_history: int = 20
+    drop_peak_on: bool = True
     mag_limit: float = 7.5
     epoch_yr: float = 2026.9
 
@@ -518,8 +543,14 @@ def run_event_tracker(
     tracker: StarTracker, events: Events, t0_s: float, t1_s: float
 ) -> list[AttitudeSolution]:
     """Slide windows of ``window_s`` over ``[t0_s, t1_s)``; while lost, a window of
-    ``lis_window_s`` ending at the current time is used for the lost-in-space solve."""
+    ``lis_window_s`` ending at the current time is used for the lost-in-space solve. With
+    ``drop_peak_on`` the peak ON events of the whole stream are removed first."""
     c = tracker.config
+    if c.drop_peak_on and len(events):
+        keep = ~peak_on_events(events.x, events.y, events.p)
+        events = Events(
+            t_us=events.t_us[keep], x=events.x[keep], y=events.y[keep], p=events.p[keep]
+        )
     out: list[AttitudeSolution] = []
     n = math.floor((t1_s - t0_s) / c.window_s + 1e-9)
     for k in range(n):

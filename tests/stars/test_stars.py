@@ -72,9 +72,8 @@ def _moving_spot_events(threshold: float, seed: int = 0) -> Events:
 def _expected_on_events(threshold: float) -> tuple[int, int]:
     """Exact ON count and the number of pixels that fire: every pixel of row y sees its log
     intensity rise by dL_y and fall back, so it fires floor(dL_y / C) ON events (ESIM, no
-    noise). The falling side gives as many OFF events except the last one, whose level is the
-    starting level itself: the log intensity only returns to it when the star's PSF leaves the
-    pixel (floating-point ties), so OFF is between ON - pixels and ON."""
+    noise). The falling side crosses the same levels except the last one, the starting level
+    itself, which is reached but not passed: one OFF event fewer per firing pixel."""
     from scipy.special import ndtr
 
     s = SPOT_PHOT.psf_sigma_px
@@ -95,7 +94,7 @@ def test_event_counts_match_contrast_threshold(threshold: float) -> None:
     # Tolerance: the log intensity is sampled every <= 0.1 px, so a pixel's peak can be
     # missed by ~2e-3 in log; no row here has a level that close to its peak: exact.
     assert on == on_expected
-    assert on_expected - pixels <= off <= on_expected
+    assert off == on_expected - pixels
     assert np.all(np.diff(ev.t_us) >= 0)
 
 
