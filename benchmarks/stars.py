@@ -124,7 +124,7 @@ def relative(seq: Path, pairs: int) -> tuple[int, int, int]:
     f = star_camera(cam.width, cam.height, cam.hfov_deg).fx
     for k in idx:
         a, b = sols[k - 1], sols[k]
-        common, ia, ib = np.intersect1d(a.star_ids, b.star_ids, return_indices=True)
+        _common, ia, ib = np.intersect1d(a.star_ids, b.star_ids, return_indices=True)
         Ra, Rb = truth.at(np.array([a.t_s, b.t_s]))
         R_true = Ra.T @ Rb
         Rr, _ = relative_rotation_bearings(a.b_cam[ia], b.b_cam[ib], 0.35 / f)

@@ -5,6 +5,8 @@
   (DSEC stores times relative to ``t_offset``; satpose writes 0). Read with h5py.
 - Text (``.txt``): one event per line ``t x y p`` with ``t`` in seconds and ``p`` in {0, 1}
   (Event Camera Dataset, Mueggler et al. 2017).
+- AEDAT4 (``.aedat4``, iniVation DV recordings): read and written with ``faery`` (its event
+  dtype: ``t`` microseconds, ``x``, ``y``, ``on``); the first event stream of the file.
 
 Writers go to a temporary name and rename into place.
 """
@@ -122,11 +124,51 @@ def read_events_txt(path: str | Path) -> Events:
         raise SequenceError(path, "t", str(exc)) from None
 
 
+def write_events_aedat4(events: Events, path: str | Path, width: int, height: int) -> Path:
+    """Write an AEDAT4 file (faery) with sensor size ``width`` x ``height``."""
+    import faery
+
+    path = Path(path)
+    tmp = path.parent / f".{path.stem}.tmp-{uuid.uuid4().hex[:8]}.aedat4"
+    arr = np.zeros(len(events), dtype=faery.EVENTS_DTYPE)
+    arr["t"], arr["x"], arr["y"], arr["on"] = events.t_us, events.x, events.y, events.p > 0
+    try:
+        faery.events_stream_from_array(arr, dimensions=(width, height)).to_file(str(tmp))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def read_events_aedat4(path: str | Path) -> Events:
+    """Read the first event stream of an AEDAT4 file (faery)."""
+    import faery
+
+    path = Path(path)
+    if not path.is_file():
+        raise SequenceError(path, None, "event file not found")
+    try:
+        arr = faery.events_stream_from_file(str(path)).to_array()
+    except Exception as exc:  # faery raises its own (Rust) error types
+        raise SequenceError(path, None, f"not a readable AEDAT4 file ({exc})") from None
+    try:
+        return Events(
+            t_us=arr["t"].astype(np.int64),
+            x=arr["x"].astype(np.uint16),
+            y=arr["y"].astype(np.uint16),
+            p=arr["on"].astype(np.uint8),
+        )
+    except EventError as exc:
+        raise SequenceError(path, "events", str(exc)) from None
+
+
 def read_events(path: str | Path) -> Events:
-    """Read ``.h5``/``.hdf5`` or ``.txt`` events by extension."""
+    """Read ``.h5``/``.hdf5``, ``.txt`` or ``.aedat4`` events by extension."""
     path = Path(path)
     if path.suffix in (".h5", ".hdf5"):
         return read_events_h5(path)
     if path.suffix == ".txt":
         return read_events_txt(path)
-    raise SequenceError(path, None, "unknown event file type (expected .h5 or .txt)")
+    if path.suffix == ".aedat4":
+        return read_events_aedat4(path)
+    raise SequenceError(path, None, "unknown event file type (expected .h5, .txt or .aedat4)")

@@ -10,9 +10,9 @@ from it, the pixel fires an event (polarity ON for an increase) and ``L_ref`` mo
 The log intensity is sampled at steps short enough that a star moves at most ``max_step_px``,
 and event times are linearly interpolated between samples. Per-pixel thresholds are drawn once
 (``N(C, sigma_C)``, the fixed-pattern mismatch); an event within ``refractory_s`` of the
-pixel's previous one is lost (its level crossing still moves ``L_ref``); a level must be passed, not just reached (a pixel
-whose star has gone returns exactly to its starting level and does not fire the last OFF
-event there); background activity
+pixel's previous one is lost (its level crossing still moves ``L_ref``); a level must be
+passed, not just reached (a pixel whose star has gone returns exactly to its starting level
+and does not fire the last OFF event there); background activity
 adds Poisson noise events of random polarity at ``noise_rate_hz`` per pixel. Only pixels near a
 star change, so only those are evaluated.
 
@@ -35,7 +35,6 @@ from scipy.special import ndtr
 from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.sky import StarCatalogue, project_stars
-
 
 TIE_LOG = 1e-9
 """Log-intensity margin by which a threshold level must be passed to fire (tie breaking)."""

@@ -10,6 +10,7 @@ has truth, and OUT/config.yaml.
 from __future__ import annotations
 
 import argparse
+import math
 import shutil
 import uuid
 from dataclasses import dataclass, replace
@@ -161,6 +162,91 @@ def _write_outputs(res: TrackResult, out: Path, seq_dir: Path, meta: dict[str, A
     (out / "config.yaml").write_text(yaml.safe_dump(meta, sort_keys=False), encoding="utf-8")
 
 
+SKY = "camera/sky"
+EVENTS = "camera/events"
+STARS = "camera/identified_stars"
+ERRORS = "error_arcsec"
+
+
+def write_recording(
+    res: TrackResult, seq_dir: Path, path: Path, every: int = 4, max_events: int = 4000
+) -> None:
+    """Rerun recording: the frames (sky image), each ``every``-th window's events (red ON,
+    blue OFF), the identified stars reprojected with the smoothed attitude, and the attitude
+    errors vs truth (when attitude_truth.csv exists). Timeline ``time`` in seconds."""
+    import rerun as rr
+
+    from satpose.datasets.event_io import read_events
+    from satpose.datasets.star_scenarios import (
+        ATTITUDE_TRUTH_FILE,
+        EVENTS_FILE,
+        load_attitude_truth,
+    )
+    from satpose.frontend.stars import solver_catalogue
+
+    seq = load_sequence(seq_dir)
+    cam = seq.calibration.left
+    rec = rr.RecordingStream(application_id="satpose-stars", recording_id=None)
+    rec.save(str(path))
+    rec.log(
+        "camera",
+        rr.Pinhole(image_from_camera=cam.K, resolution=[cam.width, cam.height]),
+        static=True,
+    )
+    for fr in seq.frames:
+        rec.set_time("time", duration=float(fr.t_s))
+        img = fr.image("left").astype(np.float64)
+        lo, hi = np.percentile(img, [1.0, 99.9])
+        img8 = (np.clip((img - lo) / max(hi - lo, 1.0), 0, 1) * 255).astype(np.uint8)
+        rec.log(SKY, rr.Image(img8, color_model="L"))
+    ev = read_events(seq_dir / EVENTS_FILE)
+    truth_path = seq_dir / ATTITUDE_TRUTH_FILE
+    truth = load_attitude_truth(truth_path) if truth_path.is_file() else None
+    ok = np.isfinite(res.R[:, 0, 0])
+    err = np.full((len(res.t_s), 3), np.nan)
+    if truth is not None and ok.any():
+        err[ok] = attitude_errors_arcsec(res.R[ok], truth.at(res.t_s[ok]))
+    tracker_cfg = StarTrackerConfig()
+    w = tracker_cfg.window_s
+    for k, sol in enumerate(res.solutions):
+        rec.set_time("time", duration=float(sol.t_s))
+        if ok[k] and truth is not None:
+            for name, v in zip(("x", "y", "roll"), err[k], strict=True):
+                rec.log(f"{ERRORS}/{name}", rr.Scalars(float(v)))
+        if k % every:
+            continue
+        win = ev.slice_time(sol.t_s - w / 2, sol.t_s + w / 2)
+        if len(win):
+            sel = slice(0, min(len(win), max_events))
+            colors = np.where(win.p[sel, None] > 0, [[230, 60, 40]], [[40, 90, 230]])
+            rec.log(
+                EVENTS,
+                rr.Points2D(
+                    np.column_stack([win.x[sel], win.y[sel]]).astype(np.float32),
+                    colors=colors.astype(np.uint8),
+                    radii=rr.Radius.ui_points(1.5),
+                ),
+            )
+        if ok[k] and sol.star_ids.size:
+            cat = solver_catalogue(*_db_scales(cam), tracker_cfg.epoch_yr)
+            rows = [cat.row_of[int(i)] for i in sol.star_ids]
+            v = cat.unit[rows] @ res.R[k]
+            px = v[:, :2] / v[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+            rec.log(
+                STARS,
+                rr.Points2D(
+                    px.astype(np.float32), colors=[[60, 220, 90]], radii=rr.Radius.ui_points(4.0)
+                ),
+            )
+
+
+def _db_scales(cam: Any) -> tuple[float, float]:
+    hfov = math.degrees(2 * math.atan(cam.width / (2 * cam.fx)))
+    vfov = math.degrees(2 * math.atan(cam.height / (2 * cam.fy)))
+    dfov = math.degrees(2 * math.atan(math.hypot(cam.width, cam.height) / (2 * cam.fx)))
+    return round(min(hfov, vfov), 3), round(dfov, 3)
+
+
 def _plot_errors(df: pd.DataFrame, path: Path, estimator: str) -> None:
     import matplotlib
 
@@ -218,6 +304,8 @@ def _cmd_track(args: argparse.Namespace) -> None:
             "frontend": to_plain(StarTrackerConfig()),
         }
         _write_outputs(res, tmp, args.sequence, meta)
+        if args.rerun:
+            write_recording(res, args.sequence, tmp / "stars.rrd")
         replace_dir(tmp, out, args.overwrite)
     finally:
         if tmp.exists():
@@ -251,6 +339,7 @@ def register(subparsers: Any) -> None:
     t.add_argument("--out", type=Path, required=True, metavar="OUT")
     t.add_argument("--pipeline", choices=["events", "frames"], default="events")
     t.add_argument("--estimator", choices=["offline", "online", "frontend"], default="offline")
+    t.add_argument("--rerun", action="store_true", help="also write OUT/stars.rrd (Rerun)")
     t.add_argument("--overwrite", action="store_true")
     t.set_defaults(handler=_cmd_track)
 

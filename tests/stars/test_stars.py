@@ -7,7 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from satpose.datasets.event_io import read_events, write_events_h5, write_events_txt
+from satpose.datasets.event_io import (
+    read_events,
+    write_events_aedat4,
+    write_events_h5,
+    write_events_txt,
+)
 from satpose.datasets.events import Events, EventSensor, Photometry, simulate_events
 from satpose.datasets.geometry import matrix_to_rotvec, rotvec_to_matrix
 from satpose.datasets.sequence import SequenceError
@@ -100,8 +105,10 @@ def test_event_counts_match_contrast_threshold(threshold: float) -> None:
 
 def test_event_files_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-def]
     ev = _moving_spot_events(0.3)
-    for path in (tmp_path / "e.h5", tmp_path / "e.txt"):
-        (write_events_h5 if path.suffix == ".h5" else write_events_txt)(ev, path)
+    write_events_h5(ev, tmp_path / "e.h5")
+    write_events_txt(ev, tmp_path / "e.txt")
+    write_events_aedat4(ev, tmp_path / "e.aedat4", 64, 48)
+    for path in (tmp_path / "e.h5", tmp_path / "e.txt", tmp_path / "e.aedat4"):
         back = read_events(path)
         np.testing.assert_array_equal(back.t_us, ev.t_us)
         np.testing.assert_array_equal(back.x, ev.x)
@@ -109,6 +116,9 @@ def test_event_files_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-de
     (tmp_path / "bad.h5").write_bytes(b"not hdf5")
     with pytest.raises(SequenceError, match=r"bad\.h5"):
         read_events(tmp_path / "bad.h5")
+    (tmp_path / "bad.aedat4").write_bytes(b"not aedat")
+    with pytest.raises(SequenceError, match=r"bad\.aedat4"):
+        read_events(tmp_path / "bad.aedat4")
 
 
 def test_wahba_recovers_rotation() -> None:
