@@ -289,6 +289,8 @@ class StarTrackerConfig:
         centroid_sigma_px: assumed per-star centroid noise (weights, covariance).
         outlier_sigma: residual gate (in centroid sigmas) after the first Wahba solve.
         rate_history: windows over which the rate for the prediction is differenced.
+        min_motion_px: star motion the events of one tracking output must span (slow slews
+            integrate longer than ``window_s``; outputs stay ``window_s`` apart).
         drop_peak_on: leave each pixel's top-level ON event out (`peak_on_events`; needs the
             pixel's next event, so it is decided on the whole stream).
         mag_limit: faintest catalogue star predicted in tracking.
@@ -303,6 +305,7 @@ class StarTrackerConfig:
     centroid_sigma_px: float = 0.35
     outlier_sigma: float = 5.0
     rate_history: int = 20
+    min_motion_px: float = 0.3
     drop_peak_on: bool = True
     mag_limit: float = 7.5
     epoch_yr: float = 2026.9
@@ -410,13 +413,22 @@ class StarTracker:
         rate = matrix_to_rotvec(R0.T @ R1) / (t1 - t0) if t1 > t0 else np.zeros(3)
         return R1 @ rotvec_to_matrix(rate * (t_s - t1))
 
-    def rate_px_s(self) -> np.ndarray:
+    def body_rate_rad_s(self) -> np.ndarray:
         """Body rate [rad/s] from the recent outputs (zero with fewer than two)."""
         if len(self.history) < 2:
             return np.zeros(3)
         k = max(0, len(self.history) - 1 - self.config.rate_history)
         (t0, R0), (t1, R1) = self.history[k], self.history[-1]
         return matrix_to_rotvec(R0.T @ R1) / (t1 - t0)
+
+    def integration_s(self) -> float:
+        """Event span for a tracking output: long enough for the stars to move
+        ``min_motion_px`` at the current rate, between ``window_s`` and ``lis_window_s``."""
+        c = self.config
+        speed = float(np.linalg.norm(self.body_rate_rad_s())) * self.cam.fx  # px/s near the centre
+        if speed <= 0:
+            return c.lis_window_s
+        return float(np.clip(c.min_motion_px / speed, c.window_s, c.lis_window_s))
 
     def predicted_stars(self, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Catalogue rows (bright enough) in view of attitude ``R`` and their pixels."""
@@ -464,8 +476,11 @@ class StarTracker:
 
     # ---- events ---------------------------------------------------------------------------
 
-    def track_events(self, events: Events, t0_s: float, t1_s: float) -> AttitudeSolution:
-        """Event tracker step for the window ``[t0_s, t1_s)`` (events already sliced).
+    def track_events(
+        self, events: Events, t0_s: float, t1_s: float, span_s: float | None = None
+    ) -> AttitudeSolution:
+        """Event tracker step: an attitude at the centre of ``[t0_s, t1_s)`` from ``events``
+        (already sliced; they may start earlier, ``span_s`` before ``t1_s``).
 
         Tracking: stamp each predicted star's gate into a label image, look every event up in
         it, balanced ON/OFF centroid per star, moved to the window centre with the predicted
@@ -477,21 +492,25 @@ class StarTracker:
         R_pred = self.predict(t_mid)
         sol = AttitudeSolution(t_mid, None, None, "lost")
         if R_pred is not None and len(events):
-            sol = self._track_gated(events, t_mid, R_pred)
+            sol = self._track_gated(events, t_mid, R_pred, span_s or (t1_s - t0_s))
         if sol.R is None:
             sol = self.identify(
                 event_spots(events, self.cam.width, self.cam.height, 2 * c.min_events), t_mid
             )
         return self._accept(_with_cpu(sol, start))
 
-    def _track_gated(self, events: Events, t_mid: float, R_pred: np.ndarray) -> AttitudeSolution:
+    def _track_gated(
+        self, events: Events, t_mid: float, R_pred: np.ndarray, span_s: float
+    ) -> AttitudeSolution:
         c = self.config
         cam = self.cam
         rows, px = self.predicted_stars(R_pred)
         if rows.size < c.min_stars:
             return AttitudeSolution(t_mid, None, None, "lost")
         # Until a rate is known (one past attitude) the prediction ignores the motion.
-        gate = c.gate_px * (3.0 if len(self.history) < 3 else 1.0)
+        # The events of a star spread along its path over the span.
+        streak = float(np.linalg.norm(self.body_rate_rad_s())) * cam.fx * span_s
+        gate = c.gate_px * (3.0 if len(self.history) < 3 else 1.0) + 0.5 * streak
         g = math.ceil(gate)
         off = np.arange(-g, g + 1)
         cx = np.rint(px[:, 0]).astype(np.int64)
@@ -521,7 +540,7 @@ class StarTracker:
             return AttitudeSolution(t_mid, None, None, "lost")
         # Move each centroid to the window centre along the predicted image motion.
         b = bearings(cam, cen[ok])
-        w = self.rate_px_s()
+        w = self.body_rate_rad_s()
         b_mid = b + np.cross(b, w) * (t_mid - t_star[ok])[:, None]  # d b/dt = -w x b = b x w
         b_mid /= np.linalg.norm(b_mid, axis=1, keepdims=True)
         return self._solve(t_mid, b_mid, self.cat.ids[rows[ok]], "tracking")
@@ -542,8 +561,9 @@ def _with_cpu(sol: AttitudeSolution, start: float) -> AttitudeSolution:
 def run_event_tracker(
     tracker: StarTracker, events: Events, t0_s: float, t1_s: float
 ) -> list[AttitudeSolution]:
-    """Slide windows of ``window_s`` over ``[t0_s, t1_s)``; while lost, a window of
-    ``lis_window_s`` ending at the current time is used for the lost-in-space solve. With
+    """Attitude every ``window_s`` over ``[t0_s, t1_s)`` while tracking (each from the events of
+    the last `StarTracker.integration_s`, at the centre of the newest ``window_s``); while
+    lost, consecutive ``lis_window_s`` windows go to the lost-in-space solver. With
     ``drop_peak_on`` the peak ON events of the whole stream are removed first."""
     c = tracker.config
     if c.drop_peak_on and len(events):
@@ -552,16 +572,20 @@ def run_event_tracker(
             t_us=events.t_us[keep], x=events.x[keep], y=events.y[keep], p=events.p[keep]
         )
     out: list[AttitudeSolution] = []
-    n = math.floor((t1_s - t0_s) / c.window_s + 1e-9)
-    for k in range(n):
-        a, b = t0_s + k * c.window_s, t0_s + (k + 1) * c.window_s
+    t = t0_s
+    while True:
         if tracker.history:
-            sol = tracker.track_events(events.slice_time(a, b), a, b)
+            b = t + c.window_s
+            if b > t1_s + 1e-9:
+                break
+            span = tracker.integration_s()
+            sol = tracker.track_events(events.slice_time(max(t0_s, b - span), b), t, b, span_s=span)
         else:
-            la = max(t0_s, b - c.lis_window_s)
-            if b - la < c.lis_window_s - 1e-9:
-                out.append(AttitudeSolution(0.5 * (a + b), None, None, "lost"))
-                continue
-            sol = tracker.track_events(events.slice_time(la, b), la, b)
+            # Lost: non-overlapping lost-in-space windows, so output times keep increasing.
+            b = t + c.lis_window_s
+            if b > t1_s + 1e-9:
+                break
+            sol = tracker.track_events(events.slice_time(t, b), t, b)
         out.append(sol)
+        t = b
     return out
