@@ -579,7 +579,13 @@ def run_event_tracker(
             if b > t1_s + 1e-9:
                 break
             span = tracker.integration_s()
-            sol = tracker.track_events(events.slice_time(max(t0_s, b - span), b), t, b, span_s=span)
+            ev = events.slice_time(max(t0_s, b - span), b)
+            if len(tracker.history) < 2:
+                # No rate yet to move centroids in time: the attitude is that of the span's
+                # centre (still later than the lost-in-space output before it).
+                sol = tracker.track_events(ev, b - span, b)
+            else:
+                sol = tracker.track_events(ev, t, b, span_s=span)
         else:
             # Lost: non-overlapping lost-in-space windows, so output times keep increasing.
             b = t + c.lis_window_s
