@@ -3,7 +3,8 @@
 Run from the repository root: ``python benchmarks/stars.py [--quick]``.
 
 1. Lost in space: random attitudes (random 1 deg/s slew axis), 50 ms of events or one 100 ms
-   frame; identified = tetra3rs matched and Wahba attitude within 60 arcsec of truth.
+   frame; identified = tetra3rs matched and Wahba attitude within 60 arcsec of truth. Event
+   failures are retried as the tracker does, on the next 100 ms and then 200 ms of events.
 2. Tracking: a slew at each rate (1.5 s); per-window attitude from the frontend and smoothed by
    the rotation graph (offline); cross-boresight RMS (angle), roll RMS, availability, CPU time
    per tracking output.
@@ -47,6 +48,7 @@ def lost_in_space(n: int, seed: int) -> dict[str, tuple[int, int, float]]:
     tracker = StarTracker(cam)
     rng = np.random.default_rng(seed)
     ok = {"events": 0, "frames": 0}
+    ok_retry = 0
     cpu = {"events": 0.0, "frames": 0.0}
     for _ in range(n):
         R0 = random_rotation(rng)
@@ -59,6 +61,7 @@ def lost_in_space(n: int, seed: int) -> dict[str, tuple[int, int, float]]:
             return R0 @ rotvec_to_matrix(np.atleast_1d(t)[:, None] * w[None])
 
         ev = simulate_events(cat, att, cam, base.photometry, base.events, 0.0, 0.05, rng)
+        first_ok = ok["events"]
         img = render_frame(cat, att, cam, base.photometry, base.frames, 0.0, rng)
         for name, spots, t in (
             ("events", event_spots(ev, cam.width, cam.height, 8), 0.025),
@@ -70,7 +73,24 @@ def lost_in_space(n: int, seed: int) -> dict[str, tuple[int, int, float]]:
             if sol.R is not None:
                 err = np.linalg.norm(matrix_to_rotvec(att(np.array([t]))[0].T @ sol.R)) / ARCSEC
                 ok[name] += err < 60.0
-    return {k: (ok[k], n, 1e3 * cpu[k] / n) for k in ok}
+        if ok["events"] == first_ok:
+            # The tracker's retry: the next lost-in-space windows last 100 ms, then 200 ms.
+            for t0, t1 in ((0.05, 0.15), (0.15, 0.35)):
+                more = simulate_events(cat, att, cam, base.photometry, base.events, t0, t1, rng)
+                spots = event_spots(more, cam.width, cam.height, 8)
+                sol = tracker.identify(spots, 0.5 * (t0 + t1))
+                if sol.R is not None:
+                    R_t = att(np.array([0.5 * (t0 + t1)]))[0]
+                    if np.linalg.norm(matrix_to_rotvec(R_t.T @ sol.R)) / ARCSEC < 60.0:
+                        ok_retry += 1
+                        break
+    out = {k: (ok[k], n, 1e3 * cpu[k] / n) for k in ok}
+    out["events, with retries (100 ms, 200 ms windows)"] = (
+        ok["events"] + ok_retry,
+        n,
+        float("nan"),
+    )
+    return out
 
 
 def tracking(rates: list[float], duration: float, root: Path) -> list[dict[str, float | str]]:
@@ -170,7 +190,8 @@ def main() -> int:
         "|---|---|---|---|---|",
     ]
     for k, (ok, n, ms) in lis.items():
-        L.append(f"| {k} | {ok} | {n} | {100 * ok / n:.1f} % | {ms:.1f} |")
+        ms_text = "" if math.isnan(ms) else f"{ms:.1f}"
+        L.append(f"| {k} | {ok} | {n} | {100 * ok / n:.1f} % | {ms_text} |")
     L += [
         "",
         "## Tracking at slew rates (1.5 s each, jitter 10 arcsec at 3 and 17 Hz)",

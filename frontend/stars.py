@@ -563,7 +563,8 @@ def run_event_tracker(
 ) -> list[AttitudeSolution]:
     """Attitude every ``window_s`` over ``[t0_s, t1_s)`` while tracking (each from the events of
     the last `StarTracker.integration_s`, at the centre of the newest ``window_s``); while
-    lost, consecutive ``lis_window_s`` windows go to the lost-in-space solver. With
+    lost, consecutive windows of ``lis_window_s`` (doubled after each failure, up to 8x) go to
+    the lost-in-space solver. With
     ``drop_peak_on`` the peak ON events of the whole stream are removed first."""
     c = tracker.config
     if c.drop_peak_on and len(events):
@@ -573,6 +574,7 @@ def run_event_tracker(
         )
     out: list[AttitudeSolution] = []
     t = t0_s
+    fails = 0
     while True:
         if tracker.history:
             b = t + c.window_s
@@ -587,11 +589,14 @@ def run_event_tracker(
             else:
                 sol = tracker.track_events(ev, t, b, span_s=span)
         else:
-            # Lost: non-overlapping lost-in-space windows, so output times keep increasing.
-            b = t + c.lis_window_s
+            # Lost: non-overlapping lost-in-space windows, so output times keep increasing;
+            # after each failure the next window is twice as long (up to 8x): few stars fire
+            # when the rotation axis is near the boresight.
+            b = t + c.lis_window_s * 2 ** min(fails, 3)
             if b > t1_s + 1e-9:
                 break
             sol = tracker.track_events(events.slice_time(t, b), t, b)
         out.append(sol)
+        fails = fails + 1 if sol.R is None else 0
         t = b
     return out
