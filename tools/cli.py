@@ -362,9 +362,16 @@ COMMANDS = {
     "demo": cmd_demo,
 }
 
+
 # More subcommands live in their own modules: each provides ``register(subparsers)``, which
 # adds its parser and sets ``handler=<function taking the parsed args>`` as a default.
-EXTRA_COMMANDS: list[Callable[[Any], None]] = [spin_cli.register]
+def _register_stars(subparsers: Any) -> None:
+    from satpose.tools.stars import register
+
+    register(subparsers)
+
+
+EXTRA_COMMANDS: list[Callable[[Any], None]] = [spin_cli.register, _register_stars]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

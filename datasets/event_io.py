@@ -1,0 +1,174 @@
+"""Event files: HDF5 as in DSEC and the text format of the Event Camera Dataset.
+
+- HDF5 (``.h5``): datasets ``events/t`` (int64, microseconds), ``events/x``, ``events/y``
+  (uint16), ``events/p`` (uint8, 1 = ON), plus the attribute ``t_offset_us`` on ``events``
+  (DSEC stores times relative to ``t_offset``; satpose writes 0). Read with h5py.
+- Text (``.txt``): one event per line ``t x y p`` with ``t`` in seconds and ``p`` in {0, 1}
+  (Event Camera Dataset, Mueggler et al. 2017).
+- AEDAT4 (``.aedat4``, iniVation DV recordings): read and written with ``faery`` (its event
+  dtype: ``t`` microseconds, ``x``, ``y``, ``on``); the first event stream of the file.
+
+Writers go to a temporary name and rename into place.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from satpose.datasets.errors import SequenceError
+from satpose.datasets.events import EventError, Events
+
+
+def _tmp(path: Path) -> Path:
+    return path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
+
+
+def write_events_h5(events: Events, path: str | Path) -> Path:
+    """Write ``events`` to an HDF5 file in DSEC's layout (gzip-compressed)."""
+    import h5py
+
+    path = Path(path)
+    tmp = _tmp(path)
+    try:
+        with h5py.File(tmp, "w") as f:
+            g = f.create_group("events")
+            g.attrs["t_offset_us"] = 0
+            for name, arr, dt in (
+                ("t", events.t_us, np.int64),
+                ("x", events.x, np.uint16),
+                ("y", events.y, np.uint16),
+                ("p", events.p, np.uint8),
+            ):
+                g.create_dataset(name, data=np.asarray(arr, dtype=dt), compression="gzip")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def read_events_h5(path: str | Path) -> Events:
+    """Read ``events/t,x,y,p`` (DSEC layout; ``t_offset_us`` or DSEC's ``t_offset`` is added)."""
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        raise SequenceError(path, None, "event file not found")
+    try:
+        with h5py.File(path, "r") as f:
+            if "events" not in f:
+                raise SequenceError(path, "events", "missing group (expected events/t,x,y,p)")
+            g = f["events"]
+            cols = {}
+            for name in ("t", "x", "y", "p"):
+                if name not in g:
+                    raise SequenceError(path, f"events/{name}", "missing dataset")
+                cols[name] = g[name][()]
+            off = int(g.attrs.get("t_offset_us", 0)) + int(
+                f["t_offset"][()] if "t_offset" in f else 0
+            )
+    except OSError as exc:
+        raise SequenceError(path, None, f"not a readable HDF5 file ({exc})") from None
+    t = np.asarray(cols["t"], dtype=np.int64) + off
+    try:
+        return Events(
+            t_us=t,
+            x=np.asarray(cols["x"], dtype=np.uint16),
+            y=np.asarray(cols["y"], dtype=np.uint16),
+            p=(np.asarray(cols["p"]) > 0).astype(np.uint8),
+        )
+    except EventError as exc:
+        raise SequenceError(path, "events", str(exc)) from None
+
+
+def write_events_txt(events: Events, path: str | Path) -> Path:
+    """Write ``t x y p`` lines (t in seconds with microsecond resolution)."""
+    path = Path(path)
+    tmp = _tmp(path)
+    try:
+        data = np.column_stack(
+            [events.t_us // 1_000_000, events.t_us % 1_000_000, events.x, events.y, events.p]
+        )
+        with open(tmp, "w", encoding="ascii") as f:
+            np.savetxt(f, data, fmt="%d.%06d %d %d %d")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def read_events_txt(path: str | Path) -> Events:
+    """Read an Event Camera Dataset ``events.txt`` (``t x y p`` per line, t in seconds)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SequenceError(path, None, "event file not found")
+    import pandas as pd
+
+    try:
+        df = pd.read_csv(path, sep=r"\s+", header=None, names=["t", "x", "y", "p"], comment="#")
+    except (ValueError, OSError) as exc:
+        raise SequenceError(path, None, f"cannot parse 't x y p' lines ({exc})") from None
+    if df.isna().any().any() or (df.shape[0] and not np.isfinite(df["t"].to_numpy()).all()):
+        raise SequenceError(path, "t x y p", "a line has missing or non-numeric fields")
+    try:
+        return Events(
+            t_us=np.rint(df["t"].to_numpy(dtype=float) * 1e6).astype(np.int64),
+            x=df["x"].to_numpy(dtype=np.uint16),
+            y=df["y"].to_numpy(dtype=np.uint16),
+            p=(df["p"].to_numpy() > 0).astype(np.uint8),
+        )
+    except EventError as exc:
+        raise SequenceError(path, "t", str(exc)) from None
+
+
+def write_events_aedat4(events: Events, path: str | Path, width: int, height: int) -> Path:
+    """Write an AEDAT4 file (faery) with sensor size ``width`` x ``height``."""
+    import faery
+
+    path = Path(path)
+    tmp = path.parent / f".{path.stem}.tmp-{uuid.uuid4().hex[:8]}.aedat4"
+    arr = np.zeros(len(events), dtype=faery.EVENTS_DTYPE)
+    arr["t"], arr["x"], arr["y"], arr["on"] = events.t_us, events.x, events.y, events.p > 0
+    try:
+        faery.events_stream_from_array(arr, dimensions=(width, height)).to_file(str(tmp))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def read_events_aedat4(path: str | Path) -> Events:
+    """Read the first event stream of an AEDAT4 file (faery)."""
+    import faery
+
+    path = Path(path)
+    if not path.is_file():
+        raise SequenceError(path, None, "event file not found")
+    try:
+        arr = faery.events_stream_from_file(str(path)).to_array()
+    except Exception as exc:  # faery raises its own (Rust) error types
+        raise SequenceError(path, None, f"not a readable AEDAT4 file ({exc})") from None
+    try:
+        return Events(
+            t_us=arr["t"].astype(np.int64),
+            x=arr["x"].astype(np.uint16),
+            y=arr["y"].astype(np.uint16),
+            p=arr["on"].astype(np.uint8),
+        )
+    except EventError as exc:
+        raise SequenceError(path, "events", str(exc)) from None
+
+
+def read_events(path: str | Path) -> Events:
+    """Read ``.h5``/``.hdf5``, ``.txt`` or ``.aedat4`` events by extension."""
+    path = Path(path)
+    if path.suffix in (".h5", ".hdf5"):
+        return read_events_h5(path)
+    if path.suffix == ".txt":
+        return read_events_txt(path)
+    if path.suffix == ".aedat4":
+        return read_events_aedat4(path)
+    raise SequenceError(path, None, "unknown event file type (expected .h5, .txt or .aedat4)")

@@ -1,0 +1,347 @@
+"""``satpose stars render|track``: the event-camera star tracker (seed 004, docs/stars.md).
+
+``render PRESET --out DIR`` simulates a star-tracker run into an event sequence folder
+(docs/event_sequence_format.md). ``track DIR --out OUT`` runs the event (default) or frame
+pipeline and the rotation graph and writes OUT/attitude.tum (``inertial_from_camera``, zero
+translation), OUT/windows.csv (per-window status), OUT/attitude_error.png when the sequence
+has truth, and OUT/config.yaml.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import shutil
+import uuid
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from satpose.datasets.config import to_plain
+from satpose.datasets.errors import SequenceError
+from satpose.datasets.geometry import matrix_to_quat_xyzw, matrix_to_rotvec
+from satpose.datasets.sequence import load_sequence, replace_dir
+from satpose.frontend.stars import (
+    ARCSEC,
+    AttitudeSolution,
+    StarTracker,
+    StarTrackerConfig,
+    frame_spots,
+    relative_rotation_bearings,
+    run_event_tracker,
+)
+
+Pipeline = Literal["events", "frames"]
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """Frontend outputs per window and the smoothed attitude (None where not anchored)."""
+
+    solutions: list[AttitudeSolution]
+    t_s: np.ndarray
+    R: np.ndarray  # smoothed (N, 3, 3); NaN rows before the first absolute attitude
+    cov: np.ndarray
+    estimator: str
+
+
+def windows_from_solutions(sols: list[AttitudeSolution], sigma_rad: float) -> list[Any]:
+    """Rotation-graph windows: absolute attitudes and rotation-only relative rotations from the
+    stars two consecutive windows share."""
+    from satpose.backend.rotation import AttitudeWindow
+
+    out = []
+    prev: AttitudeSolution | None = None
+    for s in sols:
+        rel_R = rel_cov = None
+        if prev is not None and prev.R is not None and s.R is not None:
+            common, ia, ib = np.intersect1d(prev.star_ids, s.star_ids, return_indices=True)
+            if common.size >= 3:
+                rel_R, rel_cov = relative_rotation_bearings(prev.b_cam[ia], s.b_cam[ib], sigma_rad)
+        out.append(AttitudeWindow(t_s=s.t_s, R=s.R, cov=s.cov, rel_R=rel_R, rel_cov=rel_cov))
+        prev = s
+    return out
+
+
+def track_sequence(
+    seq_dir: Path,
+    pipeline: Pipeline = "events",
+    estimator: str = "offline",
+    config: StarTrackerConfig | None = None,
+    graph_config: Any = None,
+    duration_s: float | None = None,
+) -> TrackResult:
+    """Run the frontend and the rotation graph over an event sequence folder."""
+    from satpose.backend.rotation import (
+        OnlineAttitudeSmoother,
+        RotationGraphConfig,
+        smooth_attitudes,
+    )
+    from satpose.datasets.event_io import read_events
+    from satpose.datasets.star_scenarios import EVENTS_FILE
+
+    seq = load_sequence(seq_dir)
+    cam = seq.calibration.left
+    tracker = StarTracker(cam, config)
+    if pipeline == "events":
+        ev = read_events(seq_dir / EVENTS_FILE)
+        if len(ev) == 0:
+            raise SequenceError(seq_dir / EVENTS_FILE, "events", "no events")
+        t1 = ev.t_s[-1] if duration_s is None else min(duration_s, ev.t_s[-1])
+        sols = run_event_tracker(tracker, ev, 0.0, float(t1))
+    else:
+        sols = []
+        for fr in seq.frames:
+            if duration_s is not None and fr.t_s > duration_s:
+                break
+            sols.append(tracker.track_spots(frame_spots(fr.image("left"), fr.t_s), fr.t_s))
+    windows = windows_from_solutions(sols, tracker.sigma_rad)
+    gc = graph_config or RotationGraphConfig()
+    n = len(windows)
+    R = np.full((n, 3, 3), np.nan)
+    cov = np.full((n, 3, 3), np.nan)
+    first = next((k for k, w in enumerate(windows) if w.R is not None), None)
+    if first is not None:
+        if estimator == "offline":
+            est = smooth_attitudes(windows[first:], gc)
+            R[first:], cov[first:] = est.R, est.cov
+        elif estimator == "online":
+            sm = OnlineAttitudeSmoother(gc)
+            for k in range(first, n):
+                sm.add(windows[k])
+            est = sm.estimate()
+            R[first:], cov[first:] = est.R, est.cov
+        elif estimator == "frontend":
+            for k, s in enumerate(sols):
+                if s.R is not None and s.cov is not None:
+                    R[k], cov[k] = s.R, s.cov
+        else:
+            raise SequenceError(seq_dir, "estimator", f"unknown estimator {estimator!r}")
+    return TrackResult(sols, np.array([s.t_s for s in sols]), R, cov, estimator)
+
+
+def attitude_errors_arcsec(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
+    """Error rotation vectors ``Log(R_true^T R_est)`` in the camera frame [arcsec], (N, 3):
+    x, y cross-boresight, z roll about the boresight."""
+    return matrix_to_rotvec(np.einsum("nji,njk->nik", R_true, R_est)) / ARCSEC
+
+
+def _write_outputs(res: TrackResult, out: Path, seq_dir: Path, meta: dict[str, Any]) -> None:
+    from satpose.datasets.star_scenarios import ATTITUDE_TRUTH_FILE, load_attitude_truth
+
+    ok = np.isfinite(res.R[:, 0, 0])
+    q = matrix_to_quat_xyzw(res.R[ok]) if ok.any() else np.zeros((0, 4))
+    tum = np.column_stack([res.t_s[ok], np.zeros((int(ok.sum()), 3)), q])
+    np.savetxt(out / "attitude.tum", tum, fmt="%.9f")
+    sig = np.sqrt(np.clip(np.diagonal(res.cov, axis1=1, axis2=2), 0, None)) / ARCSEC
+    df = pd.DataFrame(
+        {
+            "window": np.arange(len(res.solutions)),
+            "t_s": res.t_s,
+            "status": [s.status for s in res.solutions],
+            "stars": [len(s.star_ids) for s in res.solutions],
+            "cpu_ms": [s.cpu_ms for s in res.solutions],
+            "sigma_x_arcsec": sig[:, 0],
+            "sigma_y_arcsec": sig[:, 1],
+            "sigma_roll_arcsec": sig[:, 2],
+        }
+    )
+    truth_path = seq_dir / ATTITUDE_TRUTH_FILE
+    if truth_path.is_file():
+        truth = load_attitude_truth(truth_path)
+        err = np.full((len(res.t_s), 3), np.nan)
+        if ok.any():
+            err[ok] = attitude_errors_arcsec(res.R[ok], truth.at(res.t_s[ok]))
+        df["err_x_arcsec"], df["err_y_arcsec"], df["err_roll_arcsec"] = err.T
+        _plot_errors(df, out / "attitude_error.png", res.estimator)
+    df.to_csv(out / "windows.csv", index=False, float_format="%.6g")
+    (out / "config.yaml").write_text(yaml.safe_dump(meta, sort_keys=False), encoding="utf-8")
+
+
+SKY = "camera/sky"
+EVENTS = "camera/events"
+STARS = "camera/identified_stars"
+ERRORS = "error_arcsec"
+
+
+def write_recording(
+    res: TrackResult, seq_dir: Path, path: Path, every: int = 4, max_events: int = 4000
+) -> None:
+    """Rerun recording: the frames (sky image), each ``every``-th window's events (red ON,
+    blue OFF), the identified stars reprojected with the smoothed attitude, and the attitude
+    errors vs truth (when attitude_truth.csv exists). Timeline ``time`` in seconds."""
+    import rerun as rr
+
+    from satpose.datasets.event_io import read_events
+    from satpose.datasets.star_scenarios import (
+        ATTITUDE_TRUTH_FILE,
+        EVENTS_FILE,
+        load_attitude_truth,
+    )
+    from satpose.frontend.stars import solver_catalogue
+
+    seq = load_sequence(seq_dir)
+    cam = seq.calibration.left
+    rec = rr.RecordingStream(application_id="satpose-stars", recording_id=None)
+    rec.save(str(path))
+    rec.log(
+        "camera",
+        rr.Pinhole(image_from_camera=cam.K, resolution=[cam.width, cam.height]),
+        static=True,
+    )
+    for fr in seq.frames:
+        rec.set_time("time", duration=float(fr.t_s))
+        img = fr.image("left").astype(np.float64)
+        lo, hi = np.percentile(img, [1.0, 99.9])
+        img8 = (np.clip((img - lo) / max(hi - lo, 1.0), 0, 1) * 255).astype(np.uint8)
+        rec.log(SKY, rr.Image(img8, color_model="L"))
+    ev = read_events(seq_dir / EVENTS_FILE)
+    truth_path = seq_dir / ATTITUDE_TRUTH_FILE
+    truth = load_attitude_truth(truth_path) if truth_path.is_file() else None
+    ok = np.isfinite(res.R[:, 0, 0])
+    err = np.full((len(res.t_s), 3), np.nan)
+    if truth is not None and ok.any():
+        err[ok] = attitude_errors_arcsec(res.R[ok], truth.at(res.t_s[ok]))
+    tracker_cfg = StarTrackerConfig()
+    w = tracker_cfg.window_s
+    for k, sol in enumerate(res.solutions):
+        rec.set_time("time", duration=float(sol.t_s))
+        if ok[k] and truth is not None:
+            for name, v in zip(("x", "y", "roll"), err[k], strict=True):
+                rec.log(f"{ERRORS}/{name}", rr.Scalars(float(v)))
+        if k % every:
+            continue
+        win = ev.slice_time(sol.t_s - w / 2, sol.t_s + w / 2)
+        if len(win):
+            sel = slice(0, min(len(win), max_events))
+            colors = np.where(win.p[sel, None] > 0, [[230, 60, 40]], [[40, 90, 230]])
+            rec.log(
+                EVENTS,
+                rr.Points2D(
+                    np.column_stack([win.x[sel], win.y[sel]]).astype(np.float32),
+                    colors=colors.astype(np.uint8),
+                    radii=rr.Radius.ui_points(1.5),
+                ),
+            )
+        if ok[k] and sol.star_ids.size:
+            cat = solver_catalogue(*_db_scales(cam), tracker_cfg.epoch_yr)
+            rows = [cat.row_of[int(i)] for i in sol.star_ids]
+            v = cat.unit[rows] @ res.R[k]
+            px = v[:, :2] / v[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+            rec.log(
+                STARS,
+                rr.Points2D(
+                    px.astype(np.float32), colors=[[60, 220, 90]], radii=rr.Radius.ui_points(4.0)
+                ),
+            )
+
+
+def _db_scales(cam: Any) -> tuple[float, float]:
+    hfov = math.degrees(2 * math.atan(cam.width / (2 * cam.fx)))
+    vfov = math.degrees(2 * math.atan(cam.height / (2 * cam.fy)))
+    dfov = math.degrees(2 * math.atan(math.hypot(cam.width, cam.height) / (2 * cam.fx)))
+    return round(min(hfov, vfov), 3), round(dfov, 3)
+
+
+def _plot_errors(df: pd.DataFrame, path: Path, estimator: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+    for ax, c, label in zip(
+        axes,
+        ("x", "y", "roll"),
+        ("cross-boresight x", "cross-boresight y", "roll (about boresight)"),
+        strict=True,
+    ):
+        ax.plot(df["t_s"], df[f"err_{c}_arcsec"], lw=0.8, label=f"error ({estimator})")
+        s = df[f"sigma_{c}_arcsec"]
+        ax.fill_between(df["t_s"], -3 * s, 3 * s, color="0.85", label="±3 sigma")
+        ax.set_ylabel(f"{label} [arcsec]")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle("attitude error vs truth (inertial_from_camera)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _cmd_render(args: argparse.Namespace) -> None:
+    from satpose.datasets.star_scenarios import render_star_sequence, star_preset
+
+    s = star_preset(args.preset)
+    kw: dict[str, Any] = {}
+    if args.duration is not None:
+        kw["duration_s"] = args.duration
+    if args.slew_rate is not None:
+        kw["slew_rate_deg_s"] = args.slew_rate
+    if args.seed is not None:
+        kw["seed"] = args.seed
+    render_star_sequence(replace(s, **kw), args.out, overwrite=args.overwrite)
+    print(f"wrote {args.out}")
+
+
+def _cmd_track(args: argparse.Namespace) -> None:
+    out: Path = args.out
+    if out.exists() and not args.overwrite:
+        raise SequenceError(out, None, "output folder already exists (use --overwrite)")
+    res = track_sequence(args.sequence, args.pipeline, args.estimator)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        meta = {
+            "sequence": str(args.sequence),
+            "pipeline": args.pipeline,
+            "estimator": args.estimator,
+            "frontend": to_plain(StarTrackerConfig()),
+        }
+        _write_outputs(res, tmp, args.sequence, meta)
+        if args.rerun:
+            write_recording(res, args.sequence, tmp / "stars.rrd")
+        replace_dir(tmp, out, args.overwrite)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    n_ok = int(np.isfinite(res.R[:, 0, 0]).sum())
+    print(f"{n_ok}/{len(res.t_s)} windows with an attitude; wrote {out}")
+
+
+def register(subparsers: Any) -> None:
+    """Add ``satpose stars`` to the CLI (tools/cli.py EXTRA_COMMANDS)."""
+    from satpose.datasets.star_scenarios import PRESETS
+
+    p = subparsers.add_parser(
+        "stars",
+        help="event-camera star tracker: simulate (render) and estimate attitude (track)",
+        description="Event camera as a star tracker (seed 004; docs/stars.md).",
+    )
+    sub = p.add_subparsers(dest="stars_command", required=True, metavar="ACTION")
+    r = sub.add_parser("render", help="simulate a star-tracker run into an event sequence")
+    r.add_argument(
+        "preset", choices=sorted(PRESETS), metavar="PRESET", help=", ".join(sorted(PRESETS))
+    )
+    r.add_argument("--out", type=Path, required=True, metavar="DIR")
+    r.add_argument("--duration", type=float, help="seconds (default: the preset's)")
+    r.add_argument("--slew-rate", type=float, help="slew rate [deg/s]")
+    r.add_argument("--seed", type=int)
+    r.add_argument("--overwrite", action="store_true")
+    r.set_defaults(handler=_cmd_render)
+    t = sub.add_parser("track", help="estimate inertial_from_camera from an event sequence")
+    t.add_argument("sequence", type=Path, metavar="DIR")
+    t.add_argument("--out", type=Path, required=True, metavar="OUT")
+    t.add_argument("--pipeline", choices=["events", "frames"], default="events")
+    t.add_argument("--estimator", choices=["offline", "online", "frontend"], default="offline")
+    t.add_argument("--rerun", action="store_true", help="also write OUT/stars.rrd (Rerun)")
+    t.add_argument("--overwrite", action="store_true")
+    t.set_defaults(handler=_cmd_track)
+
+
+__all__ = ["TrackResult", "attitude_errors_arcsec", "register", "track_sequence"]
