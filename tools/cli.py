@@ -366,6 +366,15 @@ COMMANDS = {
 EXTRA_COMMANDS: list[Callable[[Any], None]] = []
 
 
+def _register_bracket(subparsers: Any) -> None:
+    from satpose.tools.bracket import register
+
+    register(subparsers)
+
+
+EXTRA_COMMANDS.append(_register_bracket)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``satpose`` console script. Returns the exit status."""
     parser = build_parser()
