@@ -60,9 +60,9 @@ class StrutDetectorConfig:
         min_sigma_px: floor of the emitted point noise [px].
         strut_radius_m: the struts' radius (known bracket geometry): their apparent width
             tells apart the P3P solutions on a frame without a prior [m]; None: not used.
-        yoke_weight: weight of a bar leaving the apex outward (the yoke to the wing) in the
-            hypothesis score (it tells the base from the side struts of a near-equilateral
-            bracket).
+        yoke_weight: weight of `yoke_ratio` (strut-like brightness just beyond the apex, where
+            the yoke to the wing is) in the hypothesis score: it tells the base from the side
+            struts of a near-equilateral bracket.
     """
 
     blur_sigma_px: float = 1.2
@@ -285,6 +285,20 @@ def _observation(
         return None
     _, p4 = _oriented(s1, p1)
     _, p3 = _oriented(s2, p2)
+    # A strut that runs into the apex is detected up to half a width beyond it; its visible
+    # end cannot lie past the apex: keep p3, p4 short of it (only their line matters).
+    p5 = _intersect(s1, s2)
+    if p5 is not None:
+        for start, name in ((p1, "p4"), (p2, "p3")):
+            end = p4 if name == "p4" else p3
+            full = float(np.linalg.norm(p5 - start))
+            along = float((end - start) @ _unit(p5 - start)) if full > 0 else 0.0
+            if along > 0.97 * full:
+                clamped = start + 0.97 * (p5 - start)
+                if name == "p4":
+                    p4 = clamped
+                else:
+                    p3 = clamped
     sigma = max(config.min_sigma_px, base.residual_px, s1.residual_px, s2.residual_px)
     return BracketObservation(p1_px=p1, p2_px=p2, p3_px=p3, p4_px=p4, sigma_px=sigma)
 
@@ -366,19 +380,32 @@ def width_prior(
     return best
 
 
-def _yoke_support(
-    p1: np.ndarray, p2: np.ndarray, p5: np.ndarray, cands: list[Strut], tol: float
+def _mean_along(img: np.ndarray, a: np.ndarray, b: np.ndarray, n: int = 24) -> float:
+    """Median grey value on the segment ``a -> b`` (nearest pixel, clipped to the image)."""
+    h, w = img.shape[:2]
+    t = np.linspace(0.0, 1.0, n)[:, None]
+    p = a + t * (b - a)
+    x = np.clip(np.round(p[:, 0]).astype(int), 0, w - 1)
+    y = np.clip(np.round(p[:, 1]).astype(int), 0, h - 1)
+    inside = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
+    if not np.any(inside):
+        return math.nan
+    return float(np.median(img[y[inside], x[inside]]))
+
+
+def yoke_ratio(
+    img: np.ndarray, p1: np.ndarray, p2: np.ndarray, p5: np.ndarray, struts: tuple[Strut, ...]
 ) -> float:
-    """Support of a candidate bar that starts at the apex and leaves it outward (the yoke)."""
+    """Grey level just beyond the apex, outward (where the yoke to the wing is), over the grey
+    level on the struts' centre lines: ~1 at the true apex (the yoke is strut material), lower
+    beyond a base vertex (foil or space). NaN when the apex is outside the image."""
+    width = float(np.mean([s.width_px for s in struts]))
     out = _unit(p5 - 0.5 * (p1 + p2))
-    total = 0.0
-    for c in cands:
-        near, far = _oriented(c, p5)
-        if np.linalg.norm(near - p5) > tol:
-            continue
-        if float(_unit(far - near) @ out) > math.cos(math.radians(25.0)):
-            total += c.support_px
-    return total
+    beyond = _mean_along(img, p5 + 1.0 * width * out, p5 + 3.0 * width * out)
+    on = np.nanmedian([_mean_along(img, s.end(0), s.end(1)) for s in struts])
+    if not (np.isfinite(beyond) and on > 0):
+        return math.nan
+    return beyond / float(on)
 
 
 def detect_struts(
@@ -445,7 +472,8 @@ def detect_struts(
         res = solve_bracket(obs, geometry, K, solver)
         return StrutDetection(obs, (base, s1, s2), seg, tuple(cands), res, res.reason, 1)
     best_det: StrutDetection | None = None
-    best_score = -1.0
+    best_score = -math.inf
+    blurred = cv2.GaussianBlur(scaled, (0, 0), cfg.blur_sigma_px)
     tried = 0
     top = cands[: cfg.candidates]
     for base, s1, s2 in itertools.permutations(top, 3):
@@ -464,13 +492,12 @@ def detect_struts(
         res = solve_bracket(obs, geometry, K, solver, prior_depths=prior)
         if res.pose is None or not _face_ok(res.pose, geometry, cfg.face_sign):
             continue
-        score = base.support_px + s1.support_px + s2.support_px
+        score = 0.0
         if res.apex_px is not None:
-            L = float(np.linalg.norm(obs.points()[1] - obs.points()[0]))
-            tol = cfg.end_tolerance * L + 2 * cfg.merge_distance_px
-            score += cfg.yoke_weight * _yoke_support(
-                obs.points()[0], obs.points()[1], res.apex_px, cands, tol
-            )
+            pts = obs.points()
+            ratio = yoke_ratio(blurred, pts[0], pts[1], res.apex_px, struts)
+            score = cfg.yoke_weight * (ratio if np.isfinite(ratio) else 0.0)
+        score += (base.support_px + s1.support_px + s2.support_px) / 1e6  # tie-break
         if score > best_score:
             best_score = score
             best_det = StrutDetection(obs, struts, seg, tuple(cands), res, "", tried)

@@ -209,9 +209,16 @@ def run_bracket(
             # kernel (default) keeps a wrongly labelled frame from pulling the trajectory.
             config = BackendConfig(measurements=MeasurementConfig(coupling="loose"))
             est = make_estimator(estimator, seq.calibration, config)
-            for m in frames:
-                est.add(m)
-            e = est.estimate()
+            try:
+                for m in frames:
+                    est.add(m)
+                e = est.estimate()
+            except RuntimeError as exc:  # gtsam: an indeterminate system
+                first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc)
+                raise BracketRunError(
+                    f"{sequence_path}: the {estimator} smoother failed ({first}); the per-frame "
+                    "poses are available with --estimator none"
+                ) from None
             smoothed = {int(f): p for f, p in zip(e.frame, e.left_cam_from_target, strict=True)}
             t_of = {fr.index: fr.t_s for fr in seq.frames}
             order = sorted(smoothed)
@@ -240,15 +247,15 @@ def run_bracket(
                 w.writerow(ERROR_COLUMNS)
                 w.writerows(err_rows)
             E = np.array([r[3:] for r in err_rows], dtype=float)
-            with np.errstate(invalid="ignore"):
-                summary.update(
-                    {
-                        "per_frame_pos_rms_mm": float(np.sqrt(np.nanmean(E[:, 0] ** 2)) * 1e3),
-                        "per_frame_rot_rms_deg": float(np.sqrt(np.nanmean(E[:, 1] ** 2))),
-                        "smoothed_pos_rms_mm": float(np.sqrt(np.nanmean(E[:, 2] ** 2)) * 1e3),
-                        "smoothed_rot_rms_deg": float(np.sqrt(np.nanmean(E[:, 3] ** 2))),
-                    }
-                )
+            for name, col, unit in (
+                ("per_frame_pos_rms_mm", 0, 1e3),
+                ("per_frame_rot_rms_deg", 1, 1.0),
+                ("smoothed_pos_rms_mm", 2, 1e3),
+                ("smoothed_rot_rms_deg", 3, 1.0),
+            ):
+                v = E[:, col][np.isfinite(E[:, col])]
+                if v.size:
+                    summary[name] = float(np.sqrt(np.mean(v**2)) * unit)
         out.parent.mkdir(parents=True, exist_ok=True)
         if out.exists() and not any(out.iterdir()):
             out.rmdir()
