@@ -414,6 +414,7 @@ def detect_struts(
     geometry: BracketGeometry,
     config: StrutDetectorConfig | None = None,
     predicted: Rigid3 | None = None,
+    reference: Rigid3 | None = None,
 ) -> StrutDetection:
     """The bracket's three struts and the points `solve_bracket` needs.
 
@@ -423,6 +424,8 @@ def detect_struts(
         geometry: the bracket (target frame).
         config: detector settings.
         predicted: ``left_cam_from_target`` predicted for this frame (tracking), or None.
+        reference: without ``predicted``: a recent pose (a lost track); among the consistent
+            hypotheses the one with the closest attitude wins instead of the yoke cue.
 
     Returns:
         A `StrutDetection`; ``observation`` is None with a ``reason`` when the struts are not
@@ -458,8 +461,10 @@ def detect_struts(
                 if _angle_between(c.direction, d) > 4 * cfg.max_angle_deg:
                     continue
                 dist = abs(float((c.point - pix[a]) @ n))
-                if dist < cfg.track_distance_px and dist < best_cost:
-                    best, best_cost = c, dist
+                # the longest candidate along the predicted line (a short piece near it may be
+                # a shadow edge or the strut's other half)
+                if dist < cfg.track_distance_px and -c.support_px < best_cost:
+                    best, best_cost = c, -c.support_px
             if best is None or any(best is p for p in picks):
                 return StrutDetection(
                     None, None, seg, tuple(cands), reason="a strut is not near its prediction"
@@ -493,7 +498,11 @@ def detect_struts(
         if res.pose is None or not _face_ok(res.pose, geometry, cfg.face_sign):
             continue
         score = 0.0
-        if res.apex_px is not None:
+        if reference is not None:
+            # re-acquisition after a lost track: stay closest to the last attitude
+            dR = reference.R.T @ res.pose.R
+            score = -math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(dR) - 1) / 2))))
+        elif res.apex_px is not None:
             pts = obs.points()
             ratio = yoke_ratio(blurred, pts[0], pts[1], res.apex_px, struts)
             score = cfg.yoke_weight * (ratio if np.isfinite(ratio) else 0.0)

@@ -131,9 +131,16 @@ def run_bracket(
     overlay_every: int = 10,
     overwrite: bool = False,
     detector: StrutDetectorConfig | None = None,
+    angular_noise: float = 1e-4,
+    linear_noise: float = 2e-4,
 ) -> dict[str, Any]:
     """Run the bracket method on a mono (or stereo: left image only) sequence; see the module
-    docstring for the files. Returns a summary (frames with a pose, RMS errors if truth)."""
+    docstring for the files. Returns a summary (frames with a pose, RMS errors if truth).
+
+    ``angular_noise`` [rad/s^2/sqrt(Hz)] and ``linear_noise`` [m/s^2/sqrt(Hz)] set the
+    smoother's constant-twist prior (`satpose.backend.MotionConfig`). The angular default is
+    10x the backend's: with 1 s between frames the backend's 1e-5 makes iSAM2's system
+    indeterminate at the first twist (seen on `bracket-final`)."""
     seq = load_sequence(sequence_path)
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise BracketRunError(f"{out}: folder exists and is not empty (use --overwrite)")
@@ -167,7 +174,8 @@ def run_bracket(
                 predicted = prev.pose if prev is not None else None
                 det = detect_struts(prep.gray8, K, geo, det_cfg, predicted=predicted)
                 if det.observation is None and predicted is not None:
-                    det = detect_struts(prep.gray8, K, geo, det_cfg)  # lost: search again
+                    # lost: search again, keeping the labelling closest to the last attitude
+                    det = detect_struts(prep.gray8, K, geo, det_cfg, reference=predicted)
                 if det.observation is not None:
                     prior = (
                         prev.depths_m
@@ -203,11 +211,22 @@ def run_bracket(
         write_tum([t for t, _ in per_frame], [p for _, p in per_frame], stage / "per_frame.tum")
         smoothed: dict[int, Rigid3] = {}
         if estimator != "none":
-            from satpose.backend import BackendConfig, MeasurementConfig, make_estimator
+            from satpose.backend import (
+                BackendConfig,
+                MeasurementConfig,
+                MotionConfig,
+                make_estimator,
+            )
 
             # Loose coupling: the per-frame bracket poses are the measurements; the Cauchy
             # kernel (default) keeps a wrongly labelled frame from pulling the trajectory.
-            config = BackendConfig(measurements=MeasurementConfig(coupling="loose"))
+            config = BackendConfig(
+                motion=MotionConfig(
+                    angular_accel_noise_rad_s2_rthz=angular_noise,
+                    linear_accel_noise_m_s2_rthz=linear_noise,
+                ),
+                measurements=MeasurementConfig(coupling="loose"),
+            )
             est = make_estimator(estimator, seq.calibration, config)
             try:
                 for m in frames:
@@ -274,6 +293,8 @@ def _handler(args: argparse.Namespace) -> None:
         side=args.side,
         overlay_every=args.overlay_every,
         overwrite=args.overwrite,
+        angular_noise=args.angular_noise,
+        linear_noise=args.linear_noise,
     )
     print(
         " ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in summary.items())
@@ -297,5 +318,17 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--side", type=int, default=0, help="which of target.yaml's solar_brackets")
     p.add_argument("--overlay-every", type=int, default=10, help="overlay PNG every N frames")
+    p.add_argument(
+        "--angular-noise",
+        type=float,
+        default=1e-4,
+        help="smoother: angular acceleration noise [rad/s^2/sqrt(Hz)] (default 1e-4)",
+    )
+    p.add_argument(
+        "--linear-noise",
+        type=float,
+        default=2e-4,
+        help="smoother: linear acceleration noise [m/s^2/sqrt(Hz)] (default 2e-4)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.set_defaults(handler=_handler)
