@@ -41,7 +41,12 @@ import numpy as np
 
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec
-from satpose.frontend.measurements import FrameMeasurements, PoseMeasurement, PoseMethod
+from satpose.frontend.measurements import (
+    FrameMeasurements,
+    MeasurementError,
+    PoseMeasurement,
+    PoseMethod,
+)
 
 
 class BracketError(SatposeError):
@@ -803,7 +808,12 @@ def to_frame_measurements(result: BracketResult, frame: int, t_s: float) -> Fram
         return FrameMeasurements(
             frame=frame, t_s=t_s, failures=(f"bracket: {result.reason or 'no covariance'}",)
         )
-    pose = PoseMeasurement(
-        left_cam_from_target=result.pose, covariance=result.covariance, method=PoseMethod.BRACKET
-    )
+    try:
+        pose = PoseMeasurement(
+            left_cam_from_target=result.pose,
+            covariance=result.covariance,
+            method=PoseMethod.BRACKET,
+        )
+    except MeasurementError as exc:  # e.g. a singular covariance at a degenerate view
+        return FrameMeasurements(frame=frame, t_s=t_s, failures=(f"bracket: {exc}",))
     return FrameMeasurements(frame=frame, t_s=t_s, pose=pose)

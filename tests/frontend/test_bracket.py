@@ -23,6 +23,7 @@ from satpose.frontend.bracket import (
     BracketConfig,
     BracketGeometry,
     BracketObservation,
+    BracketResult,
     absolute_orientation,
     ant_colony_depths,
     bracket_image_points,
@@ -237,3 +238,13 @@ def test_frame_measurement_carries_pose_and_covariance() -> None:
     fm = to_frame_measurements(r, 5, 0.5)
     assert fm.pose is not None and fm.pose.method == PoseMethod.BRACKET
     assert np.all(np.linalg.eigvalsh(fm.pose.covariance) > 0)
+
+
+def test_singular_covariance_becomes_a_failure() -> None:
+    T = PaperMotion().cam_from_target(10.0)
+    obs = simulate_observation(T, PAPER_VERTICES_M, K, 0.2, 0.0, np.random.default_rng(9))
+    r = solve_bracket(obs, GEO, K)
+    assert r.pose is not None
+    singular = BracketResult(pose=r.pose, covariance=np.zeros((6, 6)))
+    fm = to_frame_measurements(singular, 0, 0.0)
+    assert fm.pose is None and "singular" in fm.failures[0]
