@@ -30,7 +30,7 @@ from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.errors import ConfigError
 from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
 from satpose.datasets.sequence import Calibration
-from satpose.datasets.target import TargetConfig, layout
+from satpose.datasets.target import TargetConfig, bracket_geometry, layout
 
 Vec3 = tuple[float, float, float]
 Dist5 = tuple[float, float, float, float, float]
@@ -251,6 +251,16 @@ class Scenario:
         if not self.rate_hz > 0:
             raise ConfigError(f"rate_hz must be positive, got {self.rate_hz}")
 
+    def _with_centre_at(self, position_m: tuple[float, float, float]) -> Scenario:
+        """The same scenario with the start position chosen so that the rotation centre is at
+        ``position_m`` in the left camera frame at t = 0."""
+        r = rotation_center(self)
+        start = np.asarray(position_m, float) - initial_rotation(self.motion) @ r
+        motion = replace(
+            self.motion, start_position_m=(float(start[0]), float(start[1]), float(start[2]))
+        )
+        return replace(self, motion=motion)
+
 
 # --------------------------------------------------------------------------------------------
 # Kinematics
@@ -421,11 +431,39 @@ def spin_far() -> Scenario:
     )
 
 
+def bracket_final() -> Scenario:
+    """Seed 002's final approach on the rendered satellite: one camera 1.4 m -> 0.8 m from the
+    +x solar-wing bracket, 40 deg off its normal on the wing side (so the front panel does not
+    hide the base strut), spinning 0.5 deg/s about the ring axis through the bracket centroid,
+    lamp beside the camera, mono 1024x768 luminance images, 1 frame/s (41 frames)."""
+    target = TargetConfig()
+    b = bracket_geometry(target, 1)
+    centroid = (b.P1 + b.P2 + b.P5) / 3
+    return Scenario(
+        name="bracket-final",
+        frames=41,
+        rate_hz=1.0,
+        rig=RigConfig(stereo=False),
+        sensor=SensorConfig(mono=True),
+        target=target,
+        motion=MotionConfig(
+            start_position_m=(0.0, 0.0, 0.0),  # replaced below: centroid on the optical axis
+            velocity_m_s=(0.0, 0.0, -0.015),
+            facing_tilt_deg=40.0,
+            tilt_azimuth_deg=129.0,
+            spin_phase_deg=0.0,
+            angular_velocity_deg_s=(0.0, 0.0, 0.5),
+            rotation_center_m=(float(centroid[0]), float(centroid[1]), float(centroid[2])),
+        ),
+    )._with_centre_at((0.03, -0.02, 1.4))
+
+
 PRESETS: dict[str, Callable[[], Scenario]] = {
     "paper-docking": paper_docking,
     "tumble": tumble,
     "close-approach": close_approach,
     "spin-far": spin_far,
+    "bracket-final": bracket_final,
 }
 
 

@@ -206,6 +206,7 @@ class PoseMethod(StrEnum):
     RING_LANDMARKS = "ring+landmarks"  # ring + every mapped landmark (in-plane Procrustes)
     RING_ORB = "ring+orb"  # seed 000 eq. 10: EPnP on ORB features fused with the ring
     ORB = "orb"  # EPnP on ORB features alone (ring lost)
+    BRACKET = "bracket"  # seed 002: depths of the solar-panel bracket + absolute orientation
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -371,7 +371,17 @@ def _register_stars(subparsers: Any) -> None:
     register(subparsers)
 
 
-EXTRA_COMMANDS: list[Callable[[Any], None]] = [spin_cli.register, _register_stars]
+def _register_bracket(subparsers: Any) -> None:
+    from satpose.tools.bracket import register
+
+    register(subparsers)
+
+
+EXTRA_COMMANDS: list[Callable[[Any], None]] = [
+    spin_cli.register,
+    _register_stars,
+    _register_bracket,
+]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,0 +1,521 @@
+"""Find the bracket's struts in a mono image and emit the points `solve_bracket` needs (seed 002).
+
+1. Line segments: OpenCV's LSD (``cv2.createLineSegmentDetector``) on the lightly smoothed
+   image.
+2. Bars: a strut is a bright cylinder, so it shows as two nearly parallel segments of opposite
+   gradient with brighter pixels between them. Pairs of segments 0.6-25 strut-widths apart
+   (in pixels: ``bar_width_px``), overlapping along their length, become bars with a centre
+   line; collinear bars are merged into strut candidates (centre line, extent, support).
+3. Which candidates are the base ``P1P2`` and the struts ``P1P5``, ``P2P5``: with a predicted
+   pose (the previous frame), the candidate closest to each projected centre line; without one,
+   every ordered triple of the longest candidates is tried: the base must meet both struts near
+   its ends, the struts must start there, the depths must solve (`solve_bracket`) and the camera
+   must be on the bracket's known face (``face_sign``; it tells apart the two labellings of a
+   symmetric bracket). The hypothesis with the largest supporting length wins.
+4. Output: ``p1 = base ∩ strut1``, ``p2 = base ∩ strut2`` and the far visible ends of the two
+   struts as ``p4``, ``p3``, with ``sigma_px`` from the scatter of the supporting segment
+   endpoints about the fitted centre lines.
+
+No truth is read: only the image, the intrinsics and the bracket's known geometry.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from satpose.datasets.geometry import Rigid3
+from satpose.frontend.bracket import (
+    BracketConfig,
+    BracketGeometry,
+    BracketObservation,
+    BracketResult,
+    p3p_depths,
+    project,
+    solve_bracket,
+    strut_apex,
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class StrutDetectorConfig:
+    """Settings of `detect_struts`.
+
+    Attributes:
+        blur_sigma_px: Gaussian smoothing before LSD (rendering / sensor noise) [px].
+        min_segment_px: shortest LSD segment kept [px].
+        max_angle_deg: two edges of one bar, or two pieces of one strut, differ by at most this.
+        bar_width_px: (min, max) distance between the two edges of a strut [px].
+        merge_distance_px: collinear bars closer than this (centre lines) are one strut [px].
+        candidates: the longest this many strut candidates enter the hypothesis search.
+        end_tolerance: how far (fraction of the base length) an intersection may lie from the
+            observed end of a strut.
+        track_distance_px: with a predicted pose, a candidate farther than this from the
+            projected centre line is not that strut [px].
+        face_sign: +1 / -1: the camera is on the side of ``(P2 - P1) x (P5 - P1)`` / opposite.
+        min_sigma_px: floor of the emitted point noise [px].
+        strut_radius_m: the struts' radius (known bracket geometry): their apparent width
+            tells apart the P3P solutions on a frame without a prior [m]; None: not used.
+        yoke_weight: weight of `yoke_ratio` (strut-like brightness just beyond the apex, where
+            the yoke to the wing is) in the hypothesis score: it tells the base from the side
+            struts of a near-equilateral bracket.
+    """
+
+    blur_sigma_px: float = 1.2
+    min_segment_px: float = 15.0
+    max_angle_deg: float = 3.0
+    bar_width_px: tuple[float, float] = (3.0, 120.0)
+    merge_distance_px: float = 4.0
+    candidates: int = 8
+    end_tolerance: float = 0.12
+    track_distance_px: float = 25.0
+    face_sign: int = 1
+    min_sigma_px: float = 0.3
+    strut_radius_m: float | None = 0.015
+    yoke_weight: float = 2.0
+
+
+@dataclass(frozen=True)
+class Strut:
+    """A strut candidate: centre line ``point + s * direction`` observed over ``[s0, s1]``."""
+
+    point: np.ndarray
+    direction: np.ndarray
+    s0: float
+    s1: float
+    support_px: float
+    residual_px: float
+    width_px: float = 0.0
+
+    def end(self, which: int) -> np.ndarray:
+        return self.point + (self.s0 if which == 0 else self.s1) * self.direction
+
+    @property
+    def length(self) -> float:
+        return self.s1 - self.s0
+
+
+@dataclass(frozen=True)
+class StrutDetection:
+    """What `detect_struts` found.
+
+    Attributes:
+        observation: the four points with their noise, or None.
+        struts: (base, strut from P1, strut from P2) when found.
+        segments: every LSD segment (N, 4) ``x1, y1, x2, y2`` (for overlays).
+        candidates: every strut candidate.
+        result: the pose solved while choosing the hypothesis (no covariance), or None.
+        reason: why ``observation`` is None ("" when found).
+    """
+
+    observation: BracketObservation | None
+    struts: tuple[Strut, Strut, Strut] | None
+    segments: np.ndarray
+    candidates: tuple[Strut, ...] = ()
+    result: BracketResult | None = None
+    reason: str = ""
+    hypotheses: int = field(default=0)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def _angle_between(d1: np.ndarray, d2: np.ndarray) -> float:
+    c = abs(float(d1 @ d2))
+    return math.degrees(math.acos(min(1.0, c)))
+
+
+def _fit_line(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Weighted total-least-squares line: (point, unit direction, RMS perpendicular residual)."""
+    w = weights / weights.sum()
+    c = w @ points
+    X = (points - c) * np.sqrt(w)[:, None]
+    _, _, Vt = np.linalg.svd(X, full_matrices=False)
+    d = Vt[0]
+    n = np.array([-d[1], d[0]])
+    res = float(np.sqrt(w @ ((points - c) @ n) ** 2))
+    return c, d, res
+
+
+def _intersect(a: Strut, b: Strut) -> np.ndarray | None:
+    A = np.stack([a.direction, -b.direction], axis=1)
+    if abs(np.linalg.det(A)) < 1e-6:
+        return None
+    s, _ = np.linalg.solve(A, b.point - a.point)
+    return a.point + s * a.direction
+
+
+def line_segments(image: np.ndarray, config: StrutDetectorConfig) -> np.ndarray:
+    """LSD segments ``(N, 4)`` of a grey image (uint8/uint16/float), at least
+    ``min_segment_px`` long."""
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    f = img.astype(np.float32)
+    f = 255.0 * f / max(float(f.max()), 1e-6)
+    f = cv2.GaussianBlur(f, (0, 0), config.blur_sigma_px)
+    lsd = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
+    lines = lsd.detect(f.astype(np.uint8))[0]
+    if lines is None:
+        return np.zeros((0, 4))
+    seg = lines.reshape(-1, 4).astype(float)
+    length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
+    return seg[length >= config.min_segment_px]
+
+
+def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> list[Strut]:
+    """Bright bars: pairs of parallel segments with brighter pixels between them."""
+    h, w = image.shape[:2]
+    img = image.astype(np.float32)
+    img = cv2.GaussianBlur(img, (0, 0), config.blur_sigma_px)
+
+    def sample(p: np.ndarray) -> float:
+        x = int(np.clip(round(p[0]), 0, w - 1))
+        y = int(np.clip(round(p[1]), 0, h - 1))
+        return float(img[y, x])
+
+    p = seg[:, :2]
+    q = seg[:, 2:]
+    d = q - p
+    length = np.linalg.norm(d, axis=1)
+    u = d / length[:, None]
+    bars: list[Strut] = []
+    cos_max = math.cos(math.radians(config.max_angle_deg))
+    for i, j in itertools.combinations(range(len(seg)), 2):
+        if abs(float(u[i] @ u[j])) < cos_max:
+            continue
+        ui = u[i]
+        n = np.array([-ui[1], ui[0]])
+        mid_j = 0.5 * (p[j] + q[j])
+        sep = float((mid_j - p[i]) @ n)
+        if not config.bar_width_px[0] <= abs(sep) <= config.bar_width_px[1]:
+            continue
+        # overlap along ui
+        a = sorted([0.0, float(length[i])])
+        b = sorted([float((p[j] - p[i]) @ ui), float((q[j] - p[i]) @ ui)])
+        lo, hi = max(a[0], b[0]), min(a[1], b[1])
+        if hi - lo < 0.5 * min(length[i], length[j]):
+            continue
+        # brighter between the two edges than just outside them
+        s_mid = 0.5 * (lo + hi)
+        base = p[i] + s_mid * ui
+        centre = base + 0.5 * sep * n
+        outside_i = base - 0.35 * sep * n
+        outside_j = base + 1.35 * sep * n
+        vc = sample(centre)
+        if not (vc > sample(outside_i) + 8.0 and vc > sample(outside_j) + 8.0):
+            continue
+        pts = np.array([p[i], q[i], p[j], q[j]]) - 0.0
+        pts_c = pts + np.array([0.5, 0.5, -0.5, -0.5])[:, None] * sep * n
+        c, dirn, res = _fit_line(pts_c, np.array([length[i]] * 2 + [length[j]] * 2))
+        s = (pts_c - c) @ dirn
+        bars.append(
+            Strut(
+                point=c,
+                direction=dirn,
+                s0=float(s.min()),
+                s1=float(s.max()),
+                support_px=float(hi - lo),
+                residual_px=res,
+                width_px=abs(sep),
+            )
+        )
+    return bars
+
+
+def _merge(bars: list[Strut], config: StrutDetectorConfig) -> list[Strut]:
+    """Collinear bars -> one strut each (greedy, longest first)."""
+    order = sorted(bars, key=lambda b: -b.length)
+    used = [False] * len(order)
+    out: list[Strut] = []
+    cos_max = math.cos(math.radians(config.max_angle_deg))
+    for i, b in enumerate(order):
+        if used[i]:
+            continue
+        group = [b]
+        used[i] = True
+        n = np.array([-b.direction[1], b.direction[0]])
+        for j in range(i + 1, len(order)):
+            o = order[j]
+            if used[j] or abs(float(o.direction @ b.direction)) < cos_max:
+                continue
+            if abs(float((o.point - b.point) @ n)) > config.merge_distance_px:
+                continue
+            group.append(o)
+            used[j] = True
+        pts = np.concatenate([np.array([g.end(0), g.end(1)]) for g in group])
+        wts = np.repeat([g.support_px for g in group], 2)
+        c, dirn, res = _fit_line(pts, wts)
+        s = (pts - c) @ dirn
+        out.append(
+            Strut(
+                point=c,
+                direction=dirn,
+                s0=float(s.min()),
+                s1=float(s.max()),
+                support_px=float(sum(g.support_px for g in group)),
+                residual_px=max(res, max(g.residual_px for g in group)),
+                width_px=float(
+                    sum(g.width_px * g.support_px for g in group) / sum(g.support_px for g in group)
+                ),
+            )
+        )
+    return out
+
+
+def _oriented(strut: Strut, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The strut's (near end, far end) as seen from ``start``."""
+    e0, e1 = strut.end(0), strut.end(1)
+    if np.linalg.norm(e0 - start) <= np.linalg.norm(e1 - start):
+        return e0, e1
+    return e1, e0
+
+
+def _observation(
+    base: Strut, s1: Strut, s2: Strut, config: StrutDetectorConfig
+) -> BracketObservation | None:
+    p1 = _intersect(base, s1)
+    p2 = _intersect(base, s2)
+    if p1 is None or p2 is None:
+        return None
+    _, p4 = _oriented(s1, p1)
+    _, p3 = _oriented(s2, p2)
+    # A strut that runs into the apex is detected up to half a width beyond it; its visible
+    # end cannot lie past the apex: keep p3, p4 short of it (only their line matters).
+    p5 = _intersect(s1, s2)
+    if p5 is not None:
+        for start, name in ((p1, "p4"), (p2, "p3")):
+            end = p4 if name == "p4" else p3
+            full = float(np.linalg.norm(p5 - start))
+            along = float((end - start) @ _unit(p5 - start)) if full > 0 else 0.0
+            if along > 0.97 * full:
+                clamped = start + 0.97 * (p5 - start)
+                if name == "p4":
+                    p4 = clamped
+                else:
+                    p3 = clamped
+    sigma = max(config.min_sigma_px, base.residual_px, s1.residual_px, s2.residual_px)
+    return BracketObservation(p1_px=p1, p2_px=p2, p3_px=p3, p4_px=p4, sigma_px=sigma)
+
+
+def _plausible(base: Strut, s1: Strut, s2: Strut, config: StrutDetectorConfig) -> bool:
+    """The base meets both struts near its observed ends; the struts start there."""
+    p1 = _intersect(base, s1)
+    p2 = _intersect(base, s2)
+    if p1 is None or p2 is None:
+        return False
+    L = float(np.linalg.norm(p2 - p1))
+    if L < 2 * config.min_segment_px:
+        return False
+    tol = config.end_tolerance * L + 2 * config.merge_distance_px
+    b0, b1 = base.end(0), base.end(1)
+    ends_ok = (np.linalg.norm(b0 - p1) < tol and np.linalg.norm(b1 - p2) < tol) or (
+        np.linalg.norm(b1 - p1) < tol and np.linalg.norm(b0 - p2) < tol
+    )
+    if not ends_ok:
+        return False
+    near1, far1 = _oriented(s1, p1)
+    near2, far2 = _oriented(s2, p2)
+    if np.linalg.norm(near1 - p1) > tol or np.linalg.norm(near2 - p2) > tol:
+        return False
+    # the struts leave the base on the same side
+    n = np.array([-(p2 - p1)[1], (p2 - p1)[0]])
+    return float((far1 - p1) @ n) * float((far2 - p2) @ n) > 0
+
+
+def _face_ok(pose: Rigid3, geometry: BracketGeometry, sign: int) -> bool:
+    v = geometry.vertices_m
+    normal = pose.rotate(np.cross(v[1] - v[0], v[2] - v[0]))
+    centre = pose.apply(v.mean(axis=0)[None])[0]
+    # camera at the origin: it is on the normal's side if (0 - centre) . normal > 0
+    return sign * float(-centre @ normal) > 0
+
+
+def _apex_rays(obs: BracketObservation, K: np.ndarray) -> np.ndarray:
+    pts = obs.points()
+    p5, _ = strut_apex(pts)
+    rays = np.c_[np.array([pts[0], pts[1], p5]), np.ones(3)] @ np.linalg.inv(K).T
+    return rays / rays[:, 2:3]
+
+
+def width_prior(
+    obs: BracketObservation,
+    struts: tuple[Strut, Strut, Strut],
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    radius_m: float,
+) -> np.ndarray | None:
+    """Depths ``d1, d2, d5`` of the P3P solution whose struts' apparent widths (``~ f 2 r / z``
+    at the middle of each strut's visible part) have the measured ratios, or None."""
+    rays = _apex_rays(obs, K)
+    cands = p3p_depths(rays, geometry.sides_m)
+    if len(cands) == 0:
+        return None
+    K_inv = np.linalg.inv(K)
+    f = float(K[0, 0])
+    best, best_cost = None, math.inf
+    measured = np.log([max(st.width_px, 1e-6) for st in struts])
+    for d in cands:
+        P = d[:, None] * rays
+        predicted = []
+        for strut, (a, b) in zip(struts, ((0, 1), (0, 2), (1, 2)), strict=True):
+            mid = 0.5 * (strut.end(0) + strut.end(1))
+            w = K_inv @ np.array([mid[0], mid[1], 1.0])
+            e = P[b] - P[a]
+            A = np.stack([w, -e], axis=1)
+            sol, *_ = np.linalg.lstsq(A, P[a], rcond=None)
+            z = float((sol[0] * w)[2])
+            predicted.append(f * 2 * radius_m / z if z > 0 else 1e-9)
+        # Scale-free: edge detection on a shaded cylinder measures it narrower than its
+        # silhouette by a common factor; compare the width *ratios* only.
+        diff = measured - np.log(predicted)
+        cost = float(np.sum((diff - diff.mean()) ** 2))
+        if cost < best_cost:
+            best, best_cost = d, cost
+    return best
+
+
+def _mean_along(img: np.ndarray, a: np.ndarray, b: np.ndarray, n: int = 24) -> float:
+    """Median grey value on the segment ``a -> b`` (nearest pixel, clipped to the image)."""
+    h, w = img.shape[:2]
+    t = np.linspace(0.0, 1.0, n)[:, None]
+    p = a + t * (b - a)
+    x = np.clip(np.round(p[:, 0]).astype(int), 0, w - 1)
+    y = np.clip(np.round(p[:, 1]).astype(int), 0, h - 1)
+    inside = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
+    if not np.any(inside):
+        return math.nan
+    return float(np.median(img[y[inside], x[inside]]))
+
+
+def yoke_ratio(
+    img: np.ndarray, p1: np.ndarray, p2: np.ndarray, p5: np.ndarray, struts: tuple[Strut, ...]
+) -> float:
+    """Grey level just beyond the apex, outward (where the yoke to the wing is), over the grey
+    level on the struts' centre lines: ~1 at the true apex (the yoke is strut material), lower
+    beyond a base vertex (foil or space). NaN when the apex is outside the image."""
+    width = float(np.mean([s.width_px for s in struts]))
+    out = _unit(p5 - 0.5 * (p1 + p2))
+    beyond = _mean_along(img, p5 + 1.0 * width * out, p5 + 3.0 * width * out)
+    on = np.nanmedian([_mean_along(img, s.end(0), s.end(1)) for s in struts])
+    if not (np.isfinite(beyond) and on > 0):
+        return math.nan
+    return beyond / float(on)
+
+
+def detect_struts(
+    image: np.ndarray,
+    K: np.ndarray,
+    geometry: BracketGeometry,
+    config: StrutDetectorConfig | None = None,
+    predicted: Rigid3 | None = None,
+    reference: Rigid3 | None = None,
+) -> StrutDetection:
+    """The bracket's three struts and the points `solve_bracket` needs.
+
+    Args:
+        image: grey (or BGR) undistorted image.
+        K: its 3x3 intrinsics.
+        geometry: the bracket (target frame).
+        config: detector settings.
+        predicted: ``left_cam_from_target`` predicted for this frame (tracking), or None.
+        reference: without ``predicted``: a recent pose (a lost track); among the consistent
+            hypotheses the one with the closest attitude wins instead of the yoke cue.
+
+    Returns:
+        A `StrutDetection`; ``observation`` is None with a ``reason`` when the struts are not
+        found (never an exception for image content).
+    """
+    cfg = StrutDetectorConfig() if config is None else config
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.size == 0 or float(img.max()) <= float(img.min()):
+        return StrutDetection(None, None, np.zeros((0, 4)), reason="empty or uniform image")
+    seg = line_segments(img, cfg)
+    if len(seg) < 2:
+        return StrutDetection(None, None, seg, reason=f"only {len(seg)} line segments")
+    scaled = img.astype(np.float32) * (255.0 / float(img.max()))
+    cands = _merge(_bars(scaled, seg, cfg), cfg)
+    cands = sorted(cands, key=lambda c: -c.support_px)
+    if len(cands) < 3:
+        return StrutDetection(
+            None, None, seg, tuple(cands), reason=f"{len(cands)} strut candidates (need 3)"
+        )
+    solver = BracketConfig(covariance=False)
+    if predicted is not None:
+        v = geometry.vertices_m
+        pix = project(predicted, v, K)
+        picks: list[Strut] = []
+        for a, b in ((0, 1), (0, 2), (1, 2)):
+            d = _unit(pix[b] - pix[a])
+            n = np.array([-d[1], d[0]])
+            best: Strut | None = None
+            best_cost = math.inf
+            for c in cands:
+                if _angle_between(c.direction, d) > 4 * cfg.max_angle_deg:
+                    continue
+                dist = abs(float((c.point - pix[a]) @ n))
+                # the longest candidate along the predicted line (a short piece near it may be
+                # a shadow edge or the strut's other half)
+                if dist < cfg.track_distance_px and -c.support_px < best_cost:
+                    best, best_cost = c, -c.support_px
+            if best is None or any(best is p for p in picks):
+                return StrutDetection(
+                    None, None, seg, tuple(cands), reason="a strut is not near its prediction"
+                )
+            picks.append(best)
+        base, s1, s2 = picks
+        obs = _observation(base, s1, s2, cfg)
+        if obs is None:
+            return StrutDetection(None, None, seg, tuple(cands), reason="struts parallel")
+        res = solve_bracket(obs, geometry, K, solver)
+        return StrutDetection(obs, (base, s1, s2), seg, tuple(cands), res, res.reason, 1)
+    best_det: StrutDetection | None = None
+    best_score = -math.inf
+    blurred = cv2.GaussianBlur(scaled, (0, 0), cfg.blur_sigma_px)
+    tried = 0
+    top = cands[: cfg.candidates]
+    for base, s1, s2 in itertools.permutations(top, 3):
+        if not _plausible(base, s1, s2, cfg):
+            continue
+        obs = _observation(base, s1, s2, cfg)
+        if obs is None:
+            continue
+        tried += 1
+        struts = (base, s1, s2)
+        prior = (
+            width_prior(obs, struts, geometry, K, cfg.strut_radius_m)
+            if cfg.strut_radius_m is not None
+            else None
+        )
+        res = solve_bracket(obs, geometry, K, solver, prior_depths=prior)
+        if res.pose is None or not _face_ok(res.pose, geometry, cfg.face_sign):
+            continue
+        score = 0.0
+        if reference is not None:
+            # re-acquisition after a lost track: stay closest to the last attitude
+            dR = reference.R.T @ res.pose.R
+            score = -math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(dR) - 1) / 2))))
+        elif res.apex_px is not None:
+            pts = obs.points()
+            ratio = yoke_ratio(blurred, pts[0], pts[1], res.apex_px, struts)
+            score = cfg.yoke_weight * (ratio if np.isfinite(ratio) else 0.0)
+        score += (base.support_px + s1.support_px + s2.support_px) / 1e6  # tie-break
+        if score > best_score:
+            best_score = score
+            best_det = StrutDetection(obs, struts, seg, tuple(cands), res, "", tried)
+    if best_det is None:
+        return StrutDetection(
+            None,
+            None,
+            seg,
+            tuple(cands),
+            reason=f"no consistent bracket among {len(top)} strut candidates ({tried} tried)",
+        )
+    return best_det

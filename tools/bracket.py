@@ -1,0 +1,334 @@
+"""``satpose bracket SEQUENCE --out DIR``: seed 002's final approach on a mono sequence.
+
+Per frame: undistort, find the three struts (`satpose.frontend.bracket_lines`), solve the
+bracket pose with its covariance (`satpose.frontend.bracket`), then smooth the per-frame poses
+with the backend's constant-twist smoother (loosely coupled). The bracket geometry comes from
+target.yaml: ``bracket`` if present, else ``solar_brackets[--side]`` (a known-geometry method
+reads only the geometry it needs). Ground truth, if present, is used only for the report.
+
+DIR (written to a temporary folder, then renamed):
+
+- ``trajectory.tum``: ``left_cam_from_target`` of the smoother (or the per-frame poses with
+  ``--estimator none``), TUM ``t tx ty tz qx qy qz qw``;
+- ``per_frame.tum``: the per-frame bracket poses;
+- ``points.csv``: per frame the four image points, their sigma, the pose method or the reason
+  a frame has no pose;
+- ``overlay/NNNNNN.png``: every ``--overlay-every``-th frame with the LSD segments, strut
+  candidates, the chosen struts, the points and (if known) the projected truth;
+- ``errors.csv`` (with ground truth): per-frame and smoothed position / rotation errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import shutil
+import uuid
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from satpose.datasets.errors import SatposeError
+from satpose.datasets.geometry import Rigid3, matrix_to_rotvec
+from satpose.datasets.sequence import Sequence, load_sequence, replace_dir
+from satpose.frontend.bracket import (
+    BracketConfig,
+    BracketGeometry,
+    BracketResult,
+    project,
+    solve_bracket,
+    to_frame_measurements,
+)
+from satpose.frontend.bracket_lines import StrutDetection, StrutDetectorConfig, detect_struts
+from satpose.frontend.measurements import FrameMeasurements
+from satpose.frontend.preprocess import Undistorter
+from satpose.tools.files import write_tum
+
+POINT_COLUMNS = "frame t_s p1_x p1_y p2_x p2_y p3_x p3_y p4_x p4_y sigma_px reason".split()
+ERROR_COLUMNS = (
+    "frame t_s range_m pos_err_m rot_err_deg smoothed_pos_err_m smoothed_rot_err_deg".split()
+)
+
+
+class BracketRunError(SatposeError):
+    """`satpose bracket` cannot run on this input."""
+
+
+def bracket_from_target(seq: Sequence, side: int) -> tuple[BracketGeometry, float | None]:
+    """The bracket (target frame) and its visible fraction from the sequence's target.yaml."""
+    path = seq.root / "target.yaml"
+    if seq.target is None:
+        raise BracketRunError(f"{path}: missing (the bracket method needs the bracket geometry)")
+    if seq.target.bracket is not None:
+        b = seq.target.bracket
+        frac = b.visible_fraction if b.visible_fraction < 1.0 else None
+        return BracketGeometry(vertices_m=np.array([b.P1, b.P2, b.P5])), frac
+    raw = seq.target.extras.get("solar_brackets")
+    if not isinstance(raw, list) or not raw:
+        raise BracketRunError(f"{path}: field 'bracket' (or 'solar_brackets') is missing")
+    if not 0 <= side < len(raw):
+        raise BracketRunError(f"{path}: solar_brackets has {len(raw)} entries, --side {side}")
+    try:
+        v = np.array([raw[side][k] for k in ("P1", "P2", "P5")], dtype=float)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise BracketRunError(
+            f"{path}: solar_brackets[{side}] is not {{P1, P2, P5}} ({exc})"
+        ) from None
+    return BracketGeometry(vertices_m=v), None
+
+
+def draw_overlay(
+    gray8: np.ndarray,
+    det: StrutDetection,
+    result: BracketResult | None,
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    truth: Rigid3 | None,
+) -> np.ndarray:
+    """BGR overlay: LSD segments (dark green), strut candidates (blue), chosen struts (base
+    red, from P1 yellow, from P2 magenta), the points (white), truth vertices (green circles),
+    the estimated vertices (red crosses)."""
+    out = cv2.cvtColor(gray8, cv2.COLOR_GRAY2BGR)
+
+    def pt(p: np.ndarray) -> tuple[int, int]:
+        return round(float(p[0])), round(float(p[1]))
+
+    for s in det.segments:
+        cv2.line(out, pt(s[:2]), pt(s[2:]), (0, 110, 0), 1, cv2.LINE_AA)
+    for c in det.candidates:
+        cv2.line(out, pt(c.end(0)), pt(c.end(1)), (255, 80, 0), 1, cv2.LINE_AA)
+    if det.struts is not None:
+        for c, col in zip(det.struts, ((0, 0, 255), (0, 255, 255), (255, 0, 255)), strict=True):
+            cv2.line(out, pt(c.end(0)), pt(c.end(1)), col, 2, cv2.LINE_AA)
+    if det.observation is not None:
+        for p in det.observation.points():
+            cv2.circle(out, pt(p), 4, (255, 255, 255), 1, cv2.LINE_AA)
+    if truth is not None:
+        for p in project(truth, geometry.vertices_m, K):
+            cv2.circle(out, pt(p), 9, (0, 255, 0), 1, cv2.LINE_AA)
+    if result is not None and result.pose is not None:
+        for p in project(result.pose, geometry.vertices_m, K):
+            cv2.drawMarker(out, pt(p), (0, 0, 255), cv2.MARKER_CROSS, 14, 1)
+    return out
+
+
+def _error(est: Rigid3, true: Rigid3) -> tuple[float, float]:
+    return (
+        float(np.linalg.norm(est.t - true.t)),
+        math.degrees(float(np.linalg.norm(matrix_to_rotvec(est.R.T @ true.R)))),
+    )
+
+
+def run_bracket(
+    sequence_path: Path,
+    out: Path,
+    *,
+    estimator: str = "offline",
+    side: int = 0,
+    overlay_every: int = 10,
+    overwrite: bool = False,
+    detector: StrutDetectorConfig | None = None,
+    angular_noise: float = 1e-4,
+    linear_noise: float = 2e-4,
+) -> dict[str, Any]:
+    """Run the bracket method on a mono (or stereo: left image only) sequence; see the module
+    docstring for the files. Returns a summary (frames with a pose, RMS errors if truth).
+
+    ``angular_noise`` [rad/s^2/sqrt(Hz)] and ``linear_noise`` [m/s^2/sqrt(Hz)] set the
+    smoother's constant-twist prior (`satpose.backend.MotionConfig`). The angular default is
+    10x the backend's: with 1 s between frames the backend's 1e-5 makes iSAM2's system
+    indeterminate at the first twist (seen on `bracket-final`)."""
+    seq = load_sequence(sequence_path)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise BracketRunError(f"{out}: folder exists and is not empty (use --overwrite)")
+    geo, fraction = bracket_from_target(seq, side)
+    if fraction is not None:
+        geo = BracketGeometry(vertices_m=geo.vertices_m, visible_fraction=fraction)
+    cam = seq.calibration.left
+    und = Undistorter(cam)
+    K = cam.K
+    det_cfg = StrutDetectorConfig() if detector is None else detector
+    solver = BracketConfig()
+    stage = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    (stage / "overlay").mkdir(parents=True)
+    try:
+        frames: list[FrameMeasurements] = []
+        per_frame: list[tuple[float, Rigid3]] = []
+        rows: list[list[Any]] = []
+        prev: BracketResult | None = None
+        for k, fr in enumerate(seq.frames):
+            prep = und(fr.left())
+            truth = None
+            if seq.truth is not None:
+                try:
+                    truth = seq.truth.pose(seq.truth.row_of_frame(fr.index))
+                except KeyError:
+                    truth = None
+            result: BracketResult | None = None
+            if prep.problem is not None:
+                det = StrutDetection(None, None, np.zeros((0, 4)), reason=f"image {prep.problem}")
+            else:
+                predicted = prev.pose if prev is not None else None
+                det = detect_struts(prep.gray8, K, geo, det_cfg, predicted=predicted)
+                if det.observation is None and predicted is not None:
+                    # lost: search again, keeping the labelling closest to the last attitude
+                    det = detect_struts(prep.gray8, K, geo, det_cfg, reference=predicted)
+                if det.observation is not None:
+                    prior = (
+                        prev.depths_m
+                        if prev is not None and det.hypotheses == 1
+                        else (det.result.depths_m if det.result is not None else None)
+                    )
+                    result = solve_bracket(det.observation, geo, K, solver, prior_depths=prior)
+            reason = det.reason if result is None else result.reason
+            if result is not None and result.pose is not None:
+                prev = result
+                per_frame.append((fr.t_s, result.pose))
+                frames.append(to_frame_measurements(result, fr.index, fr.t_s))
+            else:
+                frames.append(
+                    FrameMeasurements(
+                        frame=fr.index, t_s=fr.t_s, failures=(f"bracket: {reason or 'no pose'}",)
+                    )
+                )
+            obs = det.observation
+            pts = obs.points().ravel().tolist() if obs is not None else [math.nan] * 8
+            rows.append(
+                [fr.index, fr.t_s, *pts, obs.sigma_px if obs is not None else math.nan, reason]
+            )
+            if overlay_every > 0 and k % overlay_every == 0:
+                img = draw_overlay(prep.gray8, det, result, geo, K, truth)
+                cv2.imwrite(str(stage / "overlay" / f"{fr.index:06d}.png"), img)
+        with open(stage / "points.csv", "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(POINT_COLUMNS)
+            w.writerows(rows)
+        if not per_frame:
+            raise BracketRunError(f"{sequence_path}: no frame gave a bracket pose")
+        write_tum([t for t, _ in per_frame], [p for _, p in per_frame], stage / "per_frame.tum")
+        smoothed: dict[int, Rigid3] = {}
+        if estimator != "none":
+            from satpose.backend import (
+                BackendConfig,
+                MeasurementConfig,
+                MotionConfig,
+                make_estimator,
+            )
+
+            # Loose coupling: the per-frame bracket poses are the measurements; the Cauchy
+            # kernel (default) keeps a wrongly labelled frame from pulling the trajectory.
+            config = BackendConfig(
+                motion=MotionConfig(
+                    angular_accel_noise_rad_s2_rthz=angular_noise,
+                    linear_accel_noise_m_s2_rthz=linear_noise,
+                ),
+                measurements=MeasurementConfig(coupling="loose"),
+            )
+            est = make_estimator(estimator, seq.calibration, config)
+            try:
+                for m in frames:
+                    est.add(m)
+                e = est.estimate()
+            except RuntimeError as exc:  # gtsam: an indeterminate system
+                first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc)
+                raise BracketRunError(
+                    f"{sequence_path}: the {estimator} smoother failed ({first}); the per-frame "
+                    "poses are available with --estimator none"
+                ) from None
+            smoothed = {int(f): p for f, p in zip(e.frame, e.left_cam_from_target, strict=True)}
+            t_of = {fr.index: fr.t_s for fr in seq.frames}
+            order = sorted(smoothed)
+            write_tum(
+                [t_of[f] for f in order], [smoothed[f] for f in order], stage / "trajectory.tum"
+            )
+        else:
+            shutil.copy(stage / "per_frame.tum", stage / "trajectory.tum")
+        summary: dict[str, Any] = {
+            "frames": len(seq.frames),
+            "frames_with_pose": len(per_frame),
+        }
+        if seq.truth is not None:
+            err_rows = []
+            pf = {m.frame: m.pose.left_cam_from_target for m in frames if m.pose is not None}
+            for fr in seq.frames:
+                try:
+                    T = seq.truth.pose(seq.truth.row_of_frame(fr.index))
+                except KeyError:
+                    continue
+                a = _error(pf[fr.index], T) if fr.index in pf else (math.nan, math.nan)
+                b = _error(smoothed[fr.index], T) if fr.index in smoothed else (math.nan, math.nan)
+                err_rows.append([fr.index, fr.t_s, float(np.linalg.norm(T.t)), *a, *b])
+            with open(stage / "errors.csv", "w", newline="") as fh:
+                w = csv.writer(fh)
+                w.writerow(ERROR_COLUMNS)
+                w.writerows(err_rows)
+            E = np.array([r[3:] for r in err_rows], dtype=float)
+            for name, col, unit in (
+                ("per_frame_pos_rms_mm", 0, 1e3),
+                ("per_frame_rot_rms_deg", 1, 1.0),
+                ("smoothed_pos_rms_mm", 2, 1e3),
+                ("smoothed_rot_rms_deg", 3, 1.0),
+            ):
+                v = E[:, col][np.isfinite(E[:, col])]
+                if v.size:
+                    summary[name] = float(np.sqrt(np.mean(v**2)) * unit)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if out.exists() and not any(out.iterdir()):
+            out.rmdir()
+        replace_dir(stage, out, overwrite=True)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    return summary
+
+
+def _handler(args: argparse.Namespace) -> None:
+    summary = run_bracket(
+        args.sequence,
+        args.out,
+        estimator=args.estimator,
+        side=args.side,
+        overlay_every=args.overlay_every,
+        overwrite=args.overwrite,
+        angular_noise=args.angular_noise,
+        linear_noise=args.linear_noise,
+    )
+    print(
+        " ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in summary.items())
+    )
+
+
+def register(subparsers: Any) -> None:
+    """Add ``satpose bracket``."""
+    p = subparsers.add_parser(
+        "bracket",
+        help="seed 002: pose from the solar-panel bracket's struts (mono), smoothed",
+        description=__doc__.split("\n\n")[0] if __doc__ else None,
+    )
+    p.add_argument("sequence", type=Path, help="sequence folder (mono, or the left camera)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    p.add_argument(
+        "--estimator",
+        choices=("offline", "online", "kalman", "none"),
+        default="offline",
+        help="smoother for trajectory.tum (default offline; none = per-frame poses)",
+    )
+    p.add_argument("--side", type=int, default=0, help="which of target.yaml's solar_brackets")
+    p.add_argument("--overlay-every", type=int, default=10, help="overlay PNG every N frames")
+    p.add_argument(
+        "--angular-noise",
+        type=float,
+        default=1e-4,
+        help="smoother: angular acceleration noise [rad/s^2/sqrt(Hz)] (default 1e-4)",
+    )
+    p.add_argument(
+        "--linear-noise",
+        type=float,
+        default=2e-4,
+        help="smoother: linear acceleration noise [m/s^2/sqrt(Hz)] (default 2e-4)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    p.set_defaults(handler=_handler)
