@@ -19,6 +19,7 @@ import numpy as np
 import yaml
 
 from satpose.datasets.errors import ConfigError, SatposeError
+from satpose.tools import colmap_cli
 
 if TYPE_CHECKING:
     from satpose.datasets.scenarios import Scenario
@@ -363,7 +364,7 @@ COMMANDS = {
 
 # More subcommands live in their own modules: each provides ``register(subparsers)``, which
 # adds its parser and sets ``handler=<function taking the parsed args>`` as a default.
-EXTRA_COMMANDS: list[Callable[[Any], None]] = []
+EXTRA_COMMANDS: list[Callable[[Any], None]] = [colmap_cli.register]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
