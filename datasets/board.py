@@ -67,18 +67,18 @@ class BoardConfig:
             (0: always in the centre, 1: up to the image border).
     """
 
-    squares_x: int = 9
-    squares_y: int = 7
-    square_size_m: float = 0.06
-    marker_size_m: float = 0.045
+    squares_x: int = 14
+    squares_y: int = 10
+    square_size_m: float = 0.045
+    marker_size_m: float = 0.034
     dictionary: str = "DICT_5X5_100"
     margin_squares: float = 0.5
     texels_per_square: int = 64
     black_level: float = 0.04
-    distance_m: tuple[float, float] = (0.9, 1.8)
-    tilt_deg: tuple[float, float] = (10.0, 45.0)
+    distance_m: tuple[float, float] = (0.5, 1.2)
+    tilt_deg: tuple[float, float] = (20.0, 55.0)
     roll_deg: float = 30.0
-    spread: float = 0.6
+    spread: float = 0.5
 
     def __post_init__(self) -> None:
         if self.squares_x < 3 or self.squares_y < 3:
@@ -172,10 +172,11 @@ def board_geometry(cfg: BoardConfig) -> TargetGeometry:
 def board_poses(cfg: BoardConfig, calib: Calibration, frames: int, seed: int) -> list[Rigid3]:
     """``left_cam_from_board`` for ``frames`` views, deterministic in ``seed``.
 
-    The board centre is placed along a direction of the left camera taken from a jittered
-    grid over ``spread`` of the image, at a distance drawn from ``distance_m``; the board
-    normal is tilted from the line of sight by an angle drawn from ``tilt_deg`` about a random
-    axis and rolled within ±``roll_deg``.
+    The board centre is placed along a direction taken from a jittered grid over ``spread``
+    of the left image, at a distance drawn from ``distance_m``, measured from the midpoint
+    between the two cameras (so that both see it); the board normal is tilted from the line
+    of sight by an angle drawn from ``tilt_deg`` about a random axis and rolled within
+    ±``roll_deg``.
     """
     rng = np.random.default_rng([seed, 0xB0A4D])
     cam = calib.left
@@ -184,6 +185,8 @@ def board_poses(cfg: BoardConfig, calib: Calibration, frames: int, seed: int) ->
     cells = rng.permutation(rows * cols)[:frames]
     gw, gh = cfg.grid_size_m
     centre_board = np.array([gw / 2, gh / 2, 0.0])
+    # Midpoint of the camera centres in the left frame (the left centre for a mono rig).
+    mid = np.zeros(3) if calib.right_from_left is None else calib.right_from_left.inverse().t / 2
     poses = []
     for cell in cells:
         r, c = divmod(int(cell), cols)
@@ -206,7 +209,7 @@ def board_poses(cfg: BoardConfig, calib: Calibration, frames: int, seed: int) ->
         tilt_axis = facing @ np.array([math.cos(axis_angle), math.sin(axis_angle), 0.0])
         roll = math.radians(rng.uniform(-cfg.roll_deg, cfg.roll_deg))
         R = rotvec_to_matrix(tilt_axis * tilt) @ facing @ rotvec_to_matrix([0.0, 0.0, roll])
-        t = ray * dist - R @ centre_board
+        t = mid + ray * dist - R @ centre_board
         poses.append(Rigid3(R=R, t=t))
     return poses
 

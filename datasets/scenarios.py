@@ -371,12 +371,12 @@ def close_approach() -> Scenario:
 
 
 def calibration() -> Scenario:
-    """A ChArUco board (9 x 7 squares of 6 cm, `BoardConfig`) shown to the stereo rig at 40
-    poses 0.9-1.8 m away, tilted 10-45 deg, evenly lit; the rig's true distortion applied; no
-    masks. Truth: ``left_cam_from_board`` (board frame = target frame)."""
+    """A ChArUco board (14 x 10 squares of 4.5 cm, `BoardConfig`) shown to the stereo rig at
+    60 poses 0.5-1.2 m away, tilted 20-55 deg, evenly lit; the rig's true distortion applied;
+    no masks. Truth: ``left_cam_from_board`` (board frame = target frame)."""
     return Scenario(
         name="calibration",
-        frames=40,
+        frames=60,
         rate_hz=1.0,
         board=BoardConfig(),
         sensor=SensorConfig(exposure="fixed", gain=0.8),

@@ -38,6 +38,7 @@ import itertools
 import logging
 import math
 import tempfile
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -313,17 +314,17 @@ class ColmapRun:
         models: number of separate models COLMAP made.
         image_names: ``{frame position: (left name, right name)}`` as in the reconstruction.
         masked: whether masks were used.
-        neighbour_agreement: ``{frame position: fraction}`` for each frame and the next one.
-        neighbour_matches: ``{frame position: verified matches}`` behind that fraction.
-        timings_s: seconds per stage (extract, match, map, checks).
+        consecutive_matches: ``{(name a, name b): (M, 2) keypoint indices}``, COLMAP's
+            geometrically verified matches between the same camera's images of consecutive
+            frames (keypoint index = ``points2D`` index of the image in the reconstruction).
+        timings_s: seconds per stage (extract, match, map).
     """
 
     reconstruction: Any
     models: int
     image_names: dict[int, tuple[str, str]]
     masked: bool
-    neighbour_agreement: dict[int, float]
-    neighbour_matches: dict[int, int]
+    consecutive_matches: dict[tuple[str, str], np.ndarray]
     timings_s: dict[str, float]
 
 
@@ -341,8 +342,6 @@ def run_colmap(
     Args:
         progress: called with a short message when a stage starts.
     """
-    import time
-
     import pycolmap
 
     if sequence.kind != "stereo":
@@ -424,80 +423,93 @@ def run_colmap(
         if not models:
             raise SfmCheckError(f"{sequence.root}: COLMAP reconstructed nothing")
         rec = max(models.values(), key=lambda r: r.num_reg_images())
-        t0 = time.perf_counter()
-        agreement, counts = _neighbour_agreement(rec, database, positions, names, cfg)
-        timings["neighbours"] = time.perf_counter() - t0
+        matches = _consecutive_matches(database, positions, names)
     return ColmapRun(
         reconstruction=rec,
         models=len(models),
         image_names=names,
         masked=masked,
-        neighbour_agreement=agreement,
-        neighbour_matches=counts,
+        consecutive_matches=matches,
         timings_s=timings,
     )
 
 
-def _neighbour_agreement(
-    rec: Any,
-    database: Path,
-    positions: list[int],
-    names: Mapping[int, tuple[str, str]],
-    cfg: SfmCheckConfig,
-) -> tuple[dict[int, float], dict[int, int]]:
-    """Per consecutive frame pair: the fraction of verified matches (left-left and
-    right-right) that the reconstruction explains (see the module docstring)."""
+def _consecutive_matches(
+    database: Path, positions: list[int], names: Mapping[int, tuple[str, str]]
+) -> dict[tuple[str, str], np.ndarray]:
+    """Verified inlier matches between the left (and the right) images of consecutive frames."""
     import pycolmap
 
-    registered = {img.name: img for img in rec.images.values() if img.has_pose}
-    agreement: dict[int, float] = {}
-    counts: dict[int, int] = {}
+    out: dict[tuple[str, str], np.ndarray] = {}
     with pycolmap.Database.open(database) as db:
         ids = {img.name: img.image_id for img in db.read_all_images()}
         for a, b in itertools.pairwise(positions):
-            good = judged = total = 0
             for cam in range(2):
                 na, nb = names[a][cam], names[b][cam]
-                if na not in registered or nb not in registered:
-                    continue
                 ia, ib = ids[na], ids[nb]
-                if ia > ib:
-                    na, nb, ia, ib = nb, na, ib, ia
                 if not db.exists_two_view_geometry(ia, ib):
                     continue
-                matches = np.asarray(db.read_two_view_geometry(ia, ib).inlier_matches)
-                if matches.size == 0:
-                    continue
-                total += len(matches)
-                g, j = _explained(rec, registered[na], registered[nb], matches, db, ia, ib, cfg)
-                good += g
-                judged += j
-            counts[a] = total
-            if judged:
-                agreement[a] = good / judged
+                # Read in the stored order (smaller image id first), then put na's column first.
+                lo, hi = min(ia, ib), max(ia, ib)
+                m = np.asarray(db.read_two_view_geometry(lo, hi).inlier_matches, np.int64)
+                out[(na, nb)] = m if ia == lo else m[:, ::-1]
+    return out
+
+
+def neighbour_agreement(
+    rec: Any,
+    image_names: Mapping[int, tuple[str, str]],
+    matches: Mapping[tuple[str, str], np.ndarray],
+    tolerance_px: float,
+) -> tuple[dict[int, float], dict[int, int]]:
+    """Per consecutive frame pair, the fraction of verified matches the reconstruction explains.
+
+    A match between keypoints ``i`` of image A and ``j`` of image B (same camera, consecutive
+    frames, both registered) is judged if ``i`` (else ``j``) has a 3-D point; it agrees if that
+    point, projected into the other image, lands within ``tolerance_px`` of the other keypoint.
+
+    Returns:
+        ``({position of the first frame: agreeing / judged}, {same key: verified matches})``.
+    """
+    registered = {img.name: img for img in rec.images.values() if img.has_pose}
+    positions = list(image_names)
+    agreement: dict[int, float] = {}
+    counts: dict[int, int] = {}
+    for a, b in itertools.pairwise(positions):
+        good = judged = total = 0
+        for cam in range(2):
+            key = (image_names[a][cam], image_names[b][cam])
+            m = matches.get(key)
+            A, B = registered.get(key[0]), registered.get(key[1])
+            if m is None or m.size == 0 or A is None or B is None:
+                continue
+            total += len(m)
+            g, j = _explained(rec, A, B, m, tolerance_px)
+            good += g
+            judged += j
+        counts[a] = total
+        if judged:
+            agreement[a] = good / judged
     return agreement, counts
 
 
 def _explained(
-    rec: Any, A: Any, B: Any, matches: np.ndarray, db: Any, ia: int, ib: int, cfg: SfmCheckConfig
+    rec: Any, A: Any, B: Any, matches: np.ndarray, tolerance_px: float
 ) -> tuple[int, int]:
-    """(agreeing, judged) matches between registered images A and B: a match is judged if
-    either keypoint has a 3-D point; it agrees if that point reprojects near the other."""
-    keypoints = {i: np.asarray(db.read_keypoints(i))[:, :2] for i in (ia, ib)}
-    images = {ia: A, ib: B}
+    """(agreeing, judged) matches between registered images A and B (see
+    `neighbour_agreement`)."""
     good = judged = 0
     for i, j in matches:
-        for src, dst, ks, kd in ((ia, ib, int(i), int(j)), (ib, ia, int(j), int(i))):
-            p = images[src].points2D[ks]
+        for src, dst, ks, kd in ((A, B, int(i), int(j)), (B, A, int(j), int(i))):
+            p = src.points2D[ks]
             if not p.has_point3D():
                 continue
-            xyz = rec.points3D[p.point3D_id].xyz
-            img = images[dst]
-            cam_xyz = img.cam_from_world() * xyz
+            cam_xyz = dst.cam_from_world() * rec.points3D[p.point3D_id].xyz
             judged += 1
             if cam_xyz[2] > 0:
-                uv = np.asarray(rec.cameras[img.camera_id].img_from_cam(cam_xyz)).ravel()
-                good += bool(np.linalg.norm(uv - keypoints[dst][kd]) <= cfg.neighbour_tolerance_px)
+                uv = np.asarray(rec.cameras[dst.camera_id].img_from_cam(cam_xyz)).ravel()
+                target = np.asarray(dst.points2D[kd].xy)
+                good += bool(np.linalg.norm(uv - target) <= tolerance_px)
             break
     return good, judged
 
@@ -547,6 +559,7 @@ class Health:
         rig_rotation_deg, rig_translation_m: median per-frame rig consistency.
         rig_rotation_p90_deg: its 90th percentile [deg].
         worst_neighbour_agreement: the lowest judged neighbour agreement (NaN if none).
+        neighbour_pairs_judged: consecutive frame pairs with enough verified matches.
         masked: masks were used.
         reasons: why the reconstruction is refused as ground truth (empty: accepted).
     """
@@ -561,6 +574,7 @@ class Health:
     rig_translation_m: float
     rig_rotation_p90_deg: float
     worst_neighbour_agreement: float
+    neighbour_pairs_judged: int
     masked: bool
     reasons: tuple[str, ...]
 
@@ -603,6 +617,9 @@ def assess(run: ColmapRun, right_from_left: Rigid3, cfg: SfmCheckConfig) -> Heal
     docstring and `SfmCheckConfig`)."""
     rec = run.reconstruction
     by_name = {img.name: img for img in rec.images.values() if img.has_pose}
+    agreement, match_counts = neighbour_agreement(
+        rec, run.image_names, run.consecutive_matches, cfg.neighbour_tolerance_px
+    )
     frames = []
     for pos, (ln, rn) in run.image_names.items():
         L, R = by_name.get(ln), by_name.get(rn)
@@ -629,7 +646,7 @@ def assess(run: ColmapRun, right_from_left: Rigid3, cfg: SfmCheckConfig) -> Heal
                 points=npts,
                 rig_rotation_deg=f_rot,
                 rig_translation_m=f_tr,
-                neighbour_agreement=run.neighbour_agreement.get(pos, math.nan),
+                neighbour_agreement=agreement.get(pos, math.nan),
             )
         )
     n_reg = sum(f.registered for f in frames)
@@ -642,12 +659,10 @@ def assess(run: ColmapRun, right_from_left: Rigid3, cfg: SfmCheckConfig) -> Heal
     med_rot = float(np.median(rig_rot)) if rig_rot.size else math.nan
     p90_rot = float(np.percentile(rig_rot, 90)) if rig_rot.size else math.nan
     med_tr = float(np.median(rig_tr)) if rig_tr.size else math.nan
-    judged = [
-        run.neighbour_agreement[p]
-        for p in run.neighbour_agreement
-        if run.neighbour_matches.get(p, 0) >= cfg.min_neighbour_matches
-    ]
-    worst = float(min(judged)) if judged else math.nan
+    judged = {
+        p: x for p, x in agreement.items() if match_counts.get(p, 0) >= cfg.min_neighbour_matches
+    }
+    worst = float(min(judged.values())) if judged else math.nan
     reasons = []
     if fraction < cfg.min_registered_fraction:
         reasons.append(
@@ -670,16 +685,18 @@ def assess(run: ColmapRun, right_from_left: Rigid3, cfg: SfmCheckConfig) -> Heal
             f"left/right rig inconsistent: median {100 * med_tr:.1f} cm "
             f"(> {100 * cfg.max_rig_translation_m:g})"
         )
-    bad = [
-        f"{p}->{p + 1}"
-        for p in run.neighbour_agreement
-        if run.neighbour_matches.get(p, 0) >= cfg.min_neighbour_matches
-        and run.neighbour_agreement[p] < cfg.min_neighbour_agreement
-    ]
+    bad = [p for p, x in judged.items() if x < cfg.min_neighbour_agreement]
     if bad:
         reasons.append(
             f"consecutive frames disagree with the reconstruction at {len(bad)} pair(s) "
-            f"(worst agreement {worst:.0%}, first at positions {bad[0]})"
+            f"(worst agreement {worst:.0%}; first after frame position {bad[0]})"
+        )
+    pairs = len(run.image_names) - 1
+    if len(judged) < pairs / 2:
+        reasons.append(
+            f"only {len(judged)} of {pairs} consecutive frame pairs have >= "
+            f"{cfg.min_neighbour_matches} verified matches between registered images "
+            "(the reconstruction cannot be checked against its neighbours)"
         )
     return Health(
         frames=tuple(frames),
@@ -692,6 +709,7 @@ def assess(run: ColmapRun, right_from_left: Rigid3, cfg: SfmCheckConfig) -> Heal
         rig_translation_m=med_tr,
         rig_rotation_p90_deg=p90_rot,
         worst_neighbour_agreement=worst,
+        neighbour_pairs_judged=len(judged),
         masked=run.masked,
         reasons=tuple(reasons),
     )
@@ -734,7 +752,8 @@ class SfmCheckResult:
         alignment: SE(3) alignment to the trajectory (None without a trajectory).
         sim3_scale: the Sim(3) alignment's scale (metres per COLMAP unit; 1 for a metric rig).
         disagreement: per frame registered by COLMAP and present in the trajectory.
-        run: the COLMAP run (reconstruction, timings).
+        run: the COLMAP run (reconstruction).
+        timings_s: seconds per stage (extract, match, map, checks).
     """
 
     health: Health
@@ -742,6 +761,7 @@ class SfmCheckResult:
     sim3_scale: float
     disagreement: tuple[FrameDisagreement, ...]
     run: ColmapRun
+    timings_s: dict[str, float]
 
 
 def match_trajectory(
@@ -779,6 +799,7 @@ def check_sfm(
     run = run_colmap(sequence, cfg, progress)
     calib = sequence.calibration
     assert calib.right_from_left is not None
+    t0 = time.perf_counter()
     health = assess(run, calib.right_from_left, cfg)
     alignment = None
     scale = math.nan
@@ -812,6 +833,12 @@ def check_sfm(
                     used_in_fit=bool(alignment.used[i]),
                 )
             )
+    timings = {**run.timings_s, "checks": time.perf_counter() - t0}
     return SfmCheckResult(
-        health=health, alignment=alignment, sim3_scale=scale, disagreement=tuple(rows), run=run
+        health=health,
+        alignment=alignment,
+        sim3_scale=scale,
+        disagreement=tuple(rows),
+        run=run,
+        timings_s=timings,
     )
