@@ -260,6 +260,7 @@ def sfm_report(result: SfmCheckResult, cfg: SfmCheckConfig, trajectory: str) -> 
                 "median_translation_cm": _num(100 * h.rig_translation_m, 3),
             },
             "worst_neighbour_agreement": _num(h.worst_neighbour_agreement, 4),
+            "neighbour_pairs_judged": h.neighbour_pairs_judged,
             "masked": h.masked,
         },
         "disagreement": {
@@ -270,7 +271,7 @@ def sfm_report(result: SfmCheckResult, cfg: SfmCheckConfig, trajectory: str) -> 
         },
         "alignment": None,
         "sim3_scale": _num(result.sim3_scale, 6),
-        "timings_s": {k: _num(v, 2) for k, v in result.run.timings_s.items()},
+        "timings_s": {k: _num(v, 2) for k, v in result.timings_s.items()},
         "config": to_plain(cfg),
     }
     if result.alignment is not None:

@@ -212,7 +212,7 @@ def align_poses(
     R, t, s = _fit(cam_from_world, cam_from_target, with_scale)
     if inlier_factor is not None:
         al = Alignment(rotation=R, translation=t, scale=s, used=used)
-        pos, rot = _errors([al.apply(c) for c in cam_from_world], cam_from_target)
+        pos, rot = pose_differences([al.apply(c) for c in cam_from_world], cam_from_target)
         used = (pos <= inlier_factor * np.median(pos) + 1e-3) & (
             rot <= inlier_factor * np.median(rot) + 0.01
         )
@@ -226,8 +226,9 @@ def align_poses(
     return Alignment(rotation=R, translation=t, scale=s, used=used)
 
 
-def _errors(a: list[Rigid3], b: list[Rigid3]) -> tuple[np.ndarray, np.ndarray]:
-    """Position [m] and rotation [deg] differences of matched poses."""
+def pose_differences(a: list[Rigid3], b: list[Rigid3]) -> tuple[np.ndarray, np.ndarray]:
+    """Distances between the translations [m] and angles between the rotations [deg] of
+    matched poses, (N,) each."""
     pos = np.array([np.linalg.norm(x.t - y.t) for x, y in zip(a, b, strict=True)])
     rot = np.degrees([rotation_angle(x.R.T @ y.R) for x, y in zip(a, b, strict=True)])
     return pos, np.asarray(rot, float)
@@ -781,6 +782,57 @@ def match_trajectory(
     return out
 
 
+def compare_to_trajectory(
+    sequence: Sequence,
+    health: Health,
+    trajectory: Mapping[int, Rigid3],
+    inlier_factor: float | None = 3.0,
+) -> tuple[Alignment, float, tuple[FrameDisagreement, ...]]:
+    """Align COLMAP's registered frames to a trajectory and measure the per-frame disagreement.
+
+    Args:
+        health: `assess`'s result (its frames carry COLMAP's poses).
+        trajectory: ``{frame position: left_cam_from_target}`` (`match_trajectory`).
+        inlier_factor: see `align_poses`.
+
+    Returns:
+        (SE(3) alignment, the Sim(3) alignment's scale, one row per frame registered by
+        COLMAP and present in the trajectory).
+    """
+    common = [
+        (f.position, f.left_cam_from_world)
+        for f in health.frames
+        if f.left_cam_from_world is not None and f.position in trajectory
+    ]
+    if len(common) < 3:
+        raise SfmCheckError(
+            f"only {len(common)} frames are both registered by COLMAP and in the trajectory;"
+            " the alignment needs >= 3"
+        )
+    cw = [c for _, c in common]
+    ct = [trajectory[p] for p, _ in common]
+    alignment = align_poses(cw, ct, inlier_factor=inlier_factor)
+    scale = align_poses(cw, ct, with_scale=True, inlier_factor=inlier_factor).scale
+    aligned = [alignment.apply(c) for c in cw]
+    pos, rot = pose_differences(aligned, ct)
+    rows = []
+    for i, (position, _) in enumerate(common):
+        fr = sequence[position]
+        rows.append(
+            FrameDisagreement(
+                position=position,
+                frame=fr.index,
+                t_s=fr.t_s,
+                colmap=aligned[i],
+                trajectory=ct[i],
+                position_m=float(pos[i]),
+                rotation_deg=float(rot[i]),
+                used_in_fit=bool(alignment.used[i]),
+            )
+        )
+    return alignment, scale, tuple(rows)
+
+
 def check_sfm(
     sequence: Sequence,
     trajectory: Mapping[int, Rigid3] | None,
@@ -794,6 +846,7 @@ def check_sfm(
         sequence: a stereo sequence (masks/ used if present).
         trajectory: ``{frame position: left_cam_from_target}`` (`match_trajectory`), or None
             for the health only.
+        progress: called with a short message when a stage starts.
     """
     cfg = cfg or SfmCheckConfig()
     run = run_colmap(sequence, cfg, progress)
@@ -801,44 +854,19 @@ def check_sfm(
     assert calib.right_from_left is not None
     t0 = time.perf_counter()
     health = assess(run, calib.right_from_left, cfg)
-    alignment = None
+    alignment: Alignment | None = None
     scale = math.nan
-    rows: list[FrameDisagreement] = []
+    rows: tuple[FrameDisagreement, ...] = ()
     if trajectory is not None:
-        common = [f for f in health.frames if f.registered and f.position in trajectory]
-        if len(common) < 3:
-            raise SfmCheckError(
-                f"only {len(common)} frames are both registered by COLMAP and in the trajectory;"
-                " the alignment needs >= 3"
-            )
-        cw = [f.left_cam_from_world for f in common]
-        ct = [trajectory[f.position] for f in common]
-        assert all(c is not None for c in cw)
-        cw_ = [c for c in cw if c is not None]
-        alignment = align_poses(cw_, ct, inlier_factor=cfg.inlier_factor)
-        scale = align_poses(cw_, ct, with_scale=True, inlier_factor=cfg.inlier_factor).scale
-        aligned = [alignment.apply(c) for c in cw_]
-        pos, rot = _errors(aligned, ct)
-        for i, f in enumerate(common):
-            fr = sequence[f.position]
-            rows.append(
-                FrameDisagreement(
-                    position=f.position,
-                    frame=fr.index,
-                    t_s=fr.t_s,
-                    colmap=aligned[i],
-                    trajectory=ct[i],
-                    position_m=float(pos[i]),
-                    rotation_deg=float(rot[i]),
-                    used_in_fit=bool(alignment.used[i]),
-                )
-            )
+        alignment, scale, rows = compare_to_trajectory(
+            sequence, health, trajectory, cfg.inlier_factor
+        )
     timings = {**run.timings_s, "checks": time.perf_counter() - t0}
     return SfmCheckResult(
         health=health,
         alignment=alignment,
         sim3_scale=scale,
-        disagreement=tuple(rows),
+        disagreement=rows,
         run=run,
         timings_s=timings,
     )

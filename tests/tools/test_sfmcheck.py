@@ -2,8 +2,9 @@
 
 The rendered case is a turntable (the static rig watching the target turn 4 deg per frame
 about an axis across the line of sight, 4.5 m away; 12 frames, 640x480, 6 spp, wings and
-brackets masked): COLMAP registers every frame and its poses match the truth to 0.8 cm /
-0.4 deg (measured; tolerances 2 cm / 0.8 deg), so the check must accept it. Two cases it must
+brackets masked): COLMAP registers every frame and its poses match the truth to 0.6-0.8 cm /
+0.4-0.7 deg (measured over runs; COLMAP's multithreaded matching is not bit-reproducible;
+tolerances 2 cm / 1 deg), so the check must accept it. Two cases it must
 refuse, each shown to be wrong against the truth:
 
 - an unsynchronised rig (right images one frame late; COLMAP still registers everything at
@@ -52,10 +53,10 @@ from satpose.tools.sfmcheck import (
 )
 
 FRAMES = 12
-POSITION_TOL_M = 0.02  # COLMAP vs truth, measured max 0.8 cm
-ROTATION_TOL_DEG = 0.8  # measured max 0.4 deg
+POSITION_TOL_M = 0.02  # COLMAP vs truth, measured max 0.6-0.8 cm
+ROTATION_TOL_DEG = 1.0  # measured max 0.4-0.7 deg
 SHIFTED_FRAME, SHIFT_M = 5, 0.04  # perturbations of the trajectory under test
-TURNED_FRAME, TURN_DEG = 8, 1.0
+TURNED_FRAME, TURN_DEG = 8, 2.0
 AHEAD = np.array([0.0, 0.0, 6.0])  # random test poses sit 6 m in front of the camera
 
 
@@ -127,7 +128,7 @@ def test_turntable_is_ground_truth_and_matches_the_renderer(
 
 @pytest.mark.render
 def test_disagreement_finds_the_perturbed_frames(accepted: Path) -> None:
-    """The shifted frame disagrees by its 4 cm shift, the turned one by its 1 deg turn (each
+    """The shifted frame disagrees by its 4 cm shift, the turned one by its 2 deg turn (each
     +- COLMAP's own error); both are left out of the alignment; the rest agree."""
     t = pd.read_csv(accepted / "sfm_frames.csv").set_index("frame")
     assert abs(t.loc[SHIFTED_FRAME, "position_m"] - SHIFT_M) < POSITION_TOL_M
