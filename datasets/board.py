@@ -219,9 +219,11 @@ def board_shape(mi: ModuleType, cfg: BoardConfig) -> dict[str, Any]:
 
     The rectangle's local frame maps to the board frame with local x -> board x, local y ->
     board -y, normal -> board -z (the printed face emits toward -z, the side cameras see).
-    Mitsuba's rectangle texture coordinate (u, v) = ((x + 1) / 2, (y + 1) / 2) of its local
-    square [-1, 1]^2 and a bitmap's v runs from its last row (v = 0) to its first (v = 1):
-    with local y = -board y, image row 0 sits at board y = -margin.
+    Mitsuba's rectangle texture coordinate is (u, v) = ((x + 1) / 2, (y + 1) / 2) of its
+    local square [-1, 1]^2, and a bitmap's first row is looked up at v = 0. The printed
+    image's row 0 (board y = -margin) is at local y = +1, v = 1, so the rows are flipped.
+    The rendered test board proves the convention: its detected corners land on the
+    projected truth with no offset (tests/tools/test_calibcheck.py).
     """
     img = board_image(cfg)
     w, h = cfg.size_m
@@ -233,7 +235,7 @@ def board_shape(mi: ModuleType, cfg: BoardConfig) -> dict[str, Any]:
     M[:3, 3] = [w / 2 - margin, h / 2 - margin, 0.0]
     texture = {
         "type": "bitmap",
-        # The image's last row must come first for Mitsuba's v (see the docstring).
+        # Row 0 of the printed image must be looked up at v = 1 (see the docstring).
         "bitmap": mi.Bitmap(np.ascontiguousarray(img[::-1, :, None].repeat(3, axis=2))),
         "raw": True,
         "filter_type": "bilinear",
