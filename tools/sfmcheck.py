@@ -58,6 +58,8 @@ COLMAP_PIXEL_OFFSET = 0.5
 """COLMAP pixel coordinates minus OpenCV pixel coordinates [px]."""
 TIME_MATCH_TOL_S = 1e-3
 """A trajectory time matches a frame time within this [s] (TUM files carry 9 decimals)."""
+ALIGN_MAX_REFITS = 5
+"""`align_poses` refits at most this often while its set of inlier frames changes."""
 
 
 class SfmCheckError(SatposeError):
@@ -199,7 +201,8 @@ def align_poses(
     translation (and scale) the least-squares solution of the target origin's position in
     the camera frame. With ``inlier_factor``, the fit is repeated on the frames whose
     position and rotation disagreements are both below ``inlier_factor`` times their medians
-    (plus 1 mm / 0.01 deg so that an exact fit keeps every frame).
+    (plus 1 mm / 0.01 deg so that an exact fit keeps every frame), again until that set of
+    frames stops changing (at most `ALIGN_MAX_REFITS` fits).
 
     Args:
         cam_from_world, cam_from_target: matched poses of the same N >= 3 frames.
@@ -208,21 +211,25 @@ def align_poses(
         raise SfmCheckError(
             f"alignment needs >= 3 matched frames, got {len(cam_from_world)}/{len(cam_from_target)}"
         )
-    used = np.ones(len(cam_from_world), bool)
+    n = len(cam_from_world)
+    used = np.ones(n, bool)
     R, t, s = _fit(cam_from_world, cam_from_target, with_scale)
     if inlier_factor is not None:
-        al = Alignment(rotation=R, translation=t, scale=s, used=used)
-        pos, rot = pose_differences([al.apply(c) for c in cam_from_world], cam_from_target)
-        used = (pos <= inlier_factor * np.median(pos) + 1e-3) & (
-            rot <= inlier_factor * np.median(rot) + 0.01
-        )
-        if used.sum() >= 3 and not used.all():
+        # Refit until the inlier set stops changing: a gross outlier drags the first fit and
+        # can hide a smaller one under the first threshold.
+        for _ in range(ALIGN_MAX_REFITS):
+            al = Alignment(rotation=R, translation=t, scale=s, used=used)
+            pos, rot = pose_differences([al.apply(c) for c in cam_from_world], cam_from_target)
+            inl = (pos <= inlier_factor * np.median(pos) + 1e-3) & (
+                rot <= inlier_factor * np.median(rot) + 0.01
+            )
+            if inl.sum() < 3 or np.array_equal(inl, used):
+                break
+            used = inl
             sel = np.flatnonzero(used)
             R, t, s = _fit(
                 [cam_from_world[i] for i in sel], [cam_from_target[i] for i in sel], with_scale
             )
-        else:
-            used = np.ones(len(cam_from_world), bool)
     return Alignment(rotation=R, translation=t, scale=s, used=used)
 
 
