@@ -3,6 +3,7 @@
     python benchmarks/colmap_checks.py                     # renders what is missing into runs/
     python benchmarks/colmap_checks.py --presets /data/runs  # read rendered presets from there
     python benchmarks/colmap_checks.py --only calib        # or: --only sfm (writes that part)
+    python benchmarks/colmap_checks.py --reuse             # rows already measured are kept
 
 Writes docs/results/colmap.md:
 
@@ -21,8 +22,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
+import json
 import platform
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -101,48 +105,47 @@ def sequence_path(name: str, runs: Path, presets: Path | None) -> Path:
 # --------------------------------------------------------------------------------------------
 
 
-def calibration_rows(runs: Path) -> tuple[list[list[str]], list[list[str]]]:
-    """(intrinsics rows per seed, method and camera; rig rows per seed and method)."""
+def calibration_rows(runs: Path, seed: int) -> dict[str, list[list[str]]]:
+    """Intrinsics rows (per method and camera) and rig rows (per method) of one seed."""
     cams, rigs = [], []
-    for seed in CALIB_SEEDS:
-        scenario = scaled(preset("calibration"), seed=seed)
-        path = ensure_rendered(scenario, runs / f"calibration-{seed}")
-        seq = load_sequence(path)
-        t0 = time.perf_counter()
-        result = check_calibration(seq)
-        elapsed = time.perf_counter() - t0
-        for method, errors in result.versus_reference.items():
-            fit = result.fits[method]
-            for cam, e in errors.cameras.items():
-                cams.append(
-                    [
-                        str(seed),
-                        method,
-                        cam,
-                        str(fit.views[cam]),
-                        f"{100 * e.focal_rel[0]:+.4f} / {100 * e.focal_rel[1]:+.4f}",
-                        f"{e.principal_point_px[0]:+.2f} / {e.principal_point_px[1]:+.2f}",
-                        f"{e.max_image_px:.2f}",
-                        f"{fit.rms_px[cam]:.3f}",
-                    ]
-                )
-            rig = errors.rig
-            assert rig is not None
-            missed = [k for k, v in errors.meets_targets().items() if not v]
-            rigs.append(
+    scenario = scaled(preset("calibration"), seed=seed)
+    path = ensure_rendered(scenario, runs / f"calibration-{seed}")
+    seq = load_sequence(path)
+    t0 = time.perf_counter()
+    result = check_calibration(seq)
+    elapsed = time.perf_counter() - t0
+    for method, errors in result.versus_reference.items():
+        fit = result.fits[method]
+        for cam, e in errors.cameras.items():
+            cams.append(
                 [
                     str(seed),
                     method,
-                    str(fit.views.get("stereo", "-")),
-                    f"{100 * rig.baseline_rel:+.4f}",
-                    f"{rig.rotation_deg:.4f}",
-                    f"{rig.direction_deg:.4f}",
-                    ", ".join(missed) or "all met",
-                    f"{elapsed:.1f}",
+                    cam,
+                    str(fit.views[cam]),
+                    f"{100 * e.focal_rel[0]:+.4f} / {100 * e.focal_rel[1]:+.4f}",
+                    f"{e.principal_point_px[0]:+.2f} / {e.principal_point_px[1]:+.2f}",
+                    f"{e.max_image_px:.2f}",
+                    f"{fit.rms_px[cam]:.3f}",
                 ]
             )
-        print(f"calibration seed {seed}: done in {elapsed:.1f} s", flush=True)
-    return cams, rigs
+        rig = errors.rig
+        assert rig is not None
+        missed = [k for k, v in errors.meets_targets().items() if not v]
+        rigs.append(
+            [
+                str(seed),
+                method,
+                str(fit.views.get("stereo", "-")),
+                f"{100 * rig.baseline_rel:+.4f}",
+                f"{rig.rotation_deg:.4f}",
+                f"{rig.direction_deg:.4f}",
+                ", ".join(missed) or "all met",
+                f"{elapsed:.1f}",
+            ]
+        )
+    print(f"calibration seed {seed}: done in {elapsed:.1f} s", flush=True)
+    return {"cams": cams, "rigs": rigs}
 
 
 # --------------------------------------------------------------------------------------------
@@ -210,45 +213,40 @@ def frontend_vs_truth(
     return pose_differences([al.apply(e) for e in est], true)
 
 
-def sfm_tables(cases: list[dict[str, Any]]) -> tuple[list[list[str]], list[list[str]]]:
-    health_rows, error_rows = [], []
-    for c in cases:
-        h = c["health"]
-        masks = "background" if c["exclude"] == (0,) else "background, brackets, wings"
-        reg = sum(f.registered for f in h.frames)
-        health_rows.append(
-            [
-                c["name"],
-                masks,
-                f"{reg}/{len(h.frames)}",
-                str(h.points),
-                f"{h.mean_track_length:.1f}",
-                f"{h.reprojection_px:.2f}",
-                f"{h.rig_rotation_deg:.3f} / {h.rig_rotation_p90_deg:.3f}",
-                f"{100 * h.rig_translation_m:.2f}",
-                f"{h.worst_neighbour_agreement:.0%} ({h.neighbour_pairs_judged})",
-                h.verdict,
-                " / ".join(f"{c['timings'][k]:.0f}" for k in ("extract", "match", "map", "total")),
-            ]
-        )
-        ct = c["colmap_vs_truth"]
-        fc = c["frontend_vs_colmap"]
-        ft_pos, ft_rot = c["frontend_vs_truth"]
-        error_rows.append(
-            [
-                c["name"],
-                masks,
-                f"{c['scale']:.4f}",
-                _stats(np.array([d.position_m for d in ct]), 100, ".2f"),
-                _stats(np.array([d.rotation_deg for d in ct]), 1, ".3f"),
-                f"{c['frontend_frames']}/{len(c['seq'])}",
-                _stats(np.array([d.position_m for d in fc]), 100, ".2f"),
-                _stats(np.array([d.rotation_deg for d in fc]), 1, ".3f"),
-                _stats(ft_pos, 100, ".2f"),
-                _stats(ft_rot, 1, ".3f"),
-            ]
-        )
-    return health_rows, error_rows
+def sfm_rows(c: dict[str, Any]) -> dict[str, list[str]]:
+    """The health row and the disagreement row of one SfM case."""
+    h = c["health"]
+    masks = "background" if c["exclude"] == (0,) else "background, brackets, wings"
+    reg = sum(f.registered for f in h.frames)
+    health = [
+        c["name"],
+        masks,
+        f"{reg}/{len(h.frames)}",
+        str(h.points),
+        f"{h.mean_track_length:.1f}",
+        f"{h.reprojection_px:.2f}",
+        f"{h.rig_rotation_deg:.3f} / {h.rig_rotation_p90_deg:.3f}",
+        f"{100 * h.rig_translation_m:.2f}",
+        f"{h.worst_neighbour_agreement:.0%} ({h.neighbour_pairs_judged})",
+        h.verdict,
+        " / ".join(f"{c['timings'][k]:.0f}" for k in ("extract", "match", "map", "total")),
+    ]
+    ct = c["colmap_vs_truth"]
+    fc = c["frontend_vs_colmap"]
+    ft_pos, ft_rot = c["frontend_vs_truth"]
+    errors = [
+        c["name"],
+        masks,
+        f"{c['scale']:.4f}",
+        _stats(np.array([d.position_m for d in ct]), 100, ".2f"),
+        _stats(np.array([d.rotation_deg for d in ct]), 1, ".3f"),
+        f"{c['frontend_frames']}/{len(c['seq'])}",
+        _stats(np.array([d.position_m for d in fc]), 100, ".2f"),
+        _stats(np.array([d.rotation_deg for d in fc]), 1, ".3f"),
+        _stats(ft_pos, 100, ".2f"),
+        _stats(ft_rot, 1, ".3f"),
+    ]
+    return {"health": health, "errors": errors}
 
 
 # --------------------------------------------------------------------------------------------
@@ -264,9 +262,10 @@ def table(header: list[str], rows: list[list[str]]) -> str:
 
 def write_report(
     out: Path,
-    calib: tuple[list[list[str]], list[list[str]]] | None,
-    sfm: list[dict[str, Any]] | None,
+    calib: list[dict[str, list[list[str]]]] | None,
+    sfm: list[dict[str, list[str]]] | None,
 ) -> None:
+    """The results page from per-seed calibration rows and per-case SfM rows."""
     today = datetime.date.today().isoformat()
     parts = [
         "# Independent checks with pycolmap: results",
@@ -303,7 +302,7 @@ def write_report(
                     "max image [px]",
                     "RMS [px]",
                 ],
-                calib[0],
+                [r for seed in calib for r in seed["cams"]],
             ),
             "",
             "right_from_left: baseline error [%], rotation error [deg] and the angle between "
@@ -322,11 +321,11 @@ def write_report(
                     "targets missed",
                     "time [s]",
                 ],
-                calib[1],
+                [r for seed in calib for r in seed["rigs"]],
             ),
         ]
     if sfm is not None:
-        health_rows, error_rows = sfm_tables(sfm)
+        health_rows, error_rows = [c["health"] for c in sfm], [c["errors"] for c in sfm]
         parts += [
             "",
             "## SfM check: COLMAP's health and verdict",
@@ -386,6 +385,20 @@ def write_report(
     print(f"wrote {out}")
 
 
+def cached(path: Path, compute: Callable[[], Any], reuse: bool) -> Any:
+    """The rows of one part: read from ``path`` (JSON) if ``reuse`` and it exists, else
+    computed and saved there, so that a long run can be resumed or split."""
+    if reuse and path.is_file():
+        print(f"reusing {path}", flush=True)
+        return json.loads(path.read_text())
+    rows = compute()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(rows))
+    tmp.replace(path)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
@@ -394,19 +407,41 @@ def main() -> None:
     ap.add_argument("--presets", type=Path, help="read already rendered presets from here")
     ap.add_argument("--out", type=Path, default=Path("docs/results/colmap.md"))
     ap.add_argument("--only", choices=["calib", "sfm"], help="run one part")
+    ap.add_argument(
+        "--seeds", type=int, nargs="+", default=list(CALIB_SEEDS), help="calibration seeds"
+    )
+    ap.add_argument(
+        "--reuse",
+        action="store_true",
+        help="reuse the rows of seeds and cases already measured (RUNS/colmap_rows/*.json)",
+    )
     args = ap.parse_args()
     import pycolmap
 
     pycolmap.logging.minloglevel = int(pycolmap.logging.Level.ERROR)
     args.runs.mkdir(parents=True, exist_ok=True)
-    calib = calibration_rows(args.runs) if args.only in (None, "calib") else None
+    rows = args.runs / "colmap_rows"
+    calib = None
+    if args.only in (None, "calib"):
+        calib = [
+            cached(
+                rows / f"calib-{seed}.json", partial(calibration_rows, args.runs, seed), args.reuse
+            )
+            for seed in args.seeds
+        ]
     sfm = None
     if args.only in (None, "sfm"):
         sfm = []
         for name, exclude in SFM_CASES:
-            print(f"SfM check: {name}, excluding mask ids {exclude}", flush=True)
-            sfm.append(sfm_case(name, exclude, args.runs, args.presets))
-            print(f"  {sfm[-1]['health'].verdict}", flush=True)
+
+            def case(name: str = name, exclude: tuple[int, ...] = exclude) -> dict[str, list[str]]:
+                print(f"SfM check: {name}, excluding mask ids {exclude}", flush=True)
+                c = sfm_case(name, exclude, args.runs, args.presets)
+                print(f"  {c['health'].verdict}", flush=True)
+                return sfm_rows(c)
+
+            tag = "-".join(str(i) for i in exclude)
+            sfm.append(cached(rows / f"sfm-{name}-{tag}.json", case, args.reuse))
     write_report(args.out, calib, sfm)
 
 
