@@ -411,6 +411,12 @@ def main() -> None:
         "--seeds", type=int, nargs="+", default=list(CALIB_SEEDS), help="calibration seeds"
     )
     ap.add_argument(
+        "--cases",
+        nargs="+",
+        metavar="NAME:IDS",
+        help="SfM cases to run, e.g. tumble:0-5-6 turntable:0 (default: all)",
+    )
+    ap.add_argument(
         "--reuse",
         action="store_true",
         help="reuse the rows of seeds and cases already measured (RUNS/colmap_rows/*.json)",
@@ -433,6 +439,9 @@ def main() -> None:
     if args.only in (None, "sfm"):
         sfm = []
         for name, exclude in SFM_CASES:
+            tag = "-".join(str(i) for i in exclude)
+            if args.cases is not None and f"{name}:{tag}" not in args.cases:
+                continue
 
             def case(name: str = name, exclude: tuple[int, ...] = exclude) -> dict[str, list[str]]:
                 print(f"SfM check: {name}, excluding mask ids {exclude}", flush=True)
@@ -440,7 +449,6 @@ def main() -> None:
                 print(f"  {c['health'].verdict}", flush=True)
                 return sfm_rows(c)
 
-            tag = "-".join(str(i) for i in exclude)
             sfm.append(cached(rows / f"sfm-{name}-{tag}.json", case, args.reuse))
     write_report(args.out, calib, sfm)
 
