@@ -339,6 +339,10 @@ def render_sequence(
     Returns:
         The sequence folder.
     """
+    if scenario.board is not None:
+        from satpose.datasets.board import render_board_sequence
+
+        return render_board_sequence(scenario, out, overwrite=overwrite, progress=progress)
     calib = scenario.rig.calibration()
     traj = trajectory(scenario)
     # Open the writer first: a bad output folder fails before the scene is built.

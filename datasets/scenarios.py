@@ -11,10 +11,11 @@ with ``r`` the rotation centre in the target frame. Ground truth carries ``omega
 frame, rad/s) and the velocity of the target-frame origin in the left camera frame,
 ``v - R(t) (omega x r)`` [m/s].
 
-Presets (`PRESETS`): ``paper-docking``, ``tumble``, ``close-approach`` (stereo) and
-``spin-far`` (mono, seed 001's far fast spinner). Each scales down with
-`scaled` (frames, image size, samples per pixel, seed) for tests: fewer frames keep the
-per-frame motion and cut the sequence short.
+Presets (`PRESETS`): ``paper-docking``, ``tumble``, ``close-approach`` (stereo),
+``spin-far`` (mono, seed 001's far fast spinner), ``bracket-final`` (mono, seed 002's final
+approach) and ``calibration`` (a ChArUco board instead of the satellite, at independent
+poses: `satpose.datasets.board`). Each scales down with `scaled` (frames, image size, samples
+per pixel, seed) for tests: fewer frames keep the per-frame motion and cut the sequence short.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from typing import Literal
 
 import numpy as np
 
+from satpose.datasets.board import BoardConfig
 from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.errors import ConfigError
 from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
@@ -232,7 +234,11 @@ class RenderConfig:
 
 @dataclass(frozen=True, kw_only=True)
 class Scenario:
-    """Everything needed to render a sequence. Written to sequence.yaml as provenance."""
+    """Everything needed to render a sequence. Written to sequence.yaml as provenance.
+
+    ``board``: a calibration board replaces the satellite and ``motion`` (see
+    `satpose.datasets.board`); None renders the satellite.
+    """
 
     name: str
     frames: int
@@ -244,6 +250,7 @@ class Scenario:
     motion: MotionConfig = field(default_factory=MotionConfig)
     target: TargetConfig = field(default_factory=TargetConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
+    board: BoardConfig | None = None
 
     def __post_init__(self) -> None:
         if self.frames < 1:
@@ -319,6 +326,11 @@ def pose_at(s: Scenario, t: float) -> tuple[Rigid3, np.ndarray, np.ndarray]:
 
 def trajectory(s: Scenario) -> Trajectory:
     """Ground truth at every frame time ``t_k = k / rate_hz``."""
+    if s.board is not None:
+        raise ConfigError(
+            f"scenario {s.name!r} shows a calibration board at independent poses, not a motion; "
+            "see satpose.datasets.board.board_poses"
+        )
     t = np.arange(s.frames) / s.rate_hz
     poses, omegas, vels = zip(*(pose_at(s, float(tk)) for tk in t), strict=True)
     return Trajectory(
@@ -458,12 +470,27 @@ def bracket_final() -> Scenario:
     )._with_centre_at((0.03, -0.02, 1.4))
 
 
+def calibration() -> Scenario:
+    """A ChArUco board (14 x 10 squares of 4.5 cm, `BoardConfig`) shown to the stereo rig at
+    60 poses 0.5-1.2 m away, tilted 20-55 deg, evenly lit; the rig's true distortion applied;
+    no masks. Truth: ``left_cam_from_board`` (board frame = target frame)."""
+    return Scenario(
+        name="calibration",
+        frames=60,
+        rate_hz=1.0,
+        board=BoardConfig(),
+        sensor=SensorConfig(exposure="fixed", gain=0.8),
+        render=RenderConfig(masks=False),
+    )
+
+
 PRESETS: dict[str, Callable[[], Scenario]] = {
     "paper-docking": paper_docking,
     "tumble": tumble,
     "close-approach": close_approach,
     "spin-far": spin_far,
     "bracket-final": bracket_final,
+    "calibration": calibration,
 }
 
 

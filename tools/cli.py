@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from satpose.datasets.errors import ConfigError, SatposeError
-from satpose.tools import spin_cli
+from satpose.tools import colmap_cli, spin_cli
 
 if TYPE_CHECKING:
     from satpose.datasets.scenarios import Scenario
@@ -378,6 +378,7 @@ def _register_bracket(subparsers: Any) -> None:
 
 
 EXTRA_COMMANDS: list[Callable[[Any], None]] = [
+    colmap_cli.register,
     spin_cli.register,
     _register_stars,
     _register_bracket,
