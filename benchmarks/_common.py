@@ -15,3 +15,12 @@ def ensure_rendered(name: str, root: Path) -> Path:
         print(f"rendering {name} into {out} (a few minutes)", flush=True)
         render_sequence(preset(name), out, overwrite=True)
     return out
+
+
+def write_page(path: Path, text: str) -> None:
+    """Write a results page whole or not at all (a temporary file, then a rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+    print(f"wrote {path}")

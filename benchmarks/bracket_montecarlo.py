@@ -22,6 +22,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from _common import write_page  # benchmarks/_common.py (scripts run from the root)
 
 from satpose.backend import BackendConfig, MeasurementConfig, MotionConfig, make_estimator
 from satpose.datasets.bracket_paper import (
@@ -351,11 +352,7 @@ def main(argv: list[str] | None = None) -> int:
         *timing_rows,
         "",
     ]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines))
-    tmp.replace(args.out)
-    print(f"wrote {args.out}")
+    write_page(args.out, "\n".join(lines))
     return 0
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ensure_rendered
+from _common import ensure_rendered, write_page
 
 from satpose.tools.bracket import run_bracket
 
@@ -76,11 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         *rows,
         "",
     ]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines))
-    tmp.replace(args.out)
-    print(f"wrote {args.out}")
+    write_page(args.out, "\n".join(lines))
     return 0
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from _common import ensure_rendered  # benchmarks/_common.py (scripts run from the root)
+from _common import ensure_rendered, write_page  # benchmarks/_common.py (scripts run from the root)
 
 from satpose.datasets.sequence import Sequence, load_sequence
 from satpose.frontend.conics import circle_to_conic, conic_to_ellipse
@@ -284,11 +284,7 @@ def main() -> None:
             }
             print(row, flush=True)
             rows.append(row)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(markdown(rows, args))
-    tmp.replace(args.out)
-    print(f"wrote {args.out}")
+    write_page(args.out, markdown(rows, args))
 
 
 if __name__ == "__main__":

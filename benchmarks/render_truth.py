@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import write_page  # benchmarks/_common.py (scripts run from the root)
 
 from satpose.datasets.render import render_sequence
 from satpose.datasets.render_check import geometry_errors, marker_errors
@@ -126,11 +127,7 @@ def main() -> None:
     args = parser.parse_args()
     timing = time_presets(args.frames)
     truth = truth_checks()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(markdown(timing, truth, args.frames))
-    tmp.replace(args.out)
-    print(f"wrote {args.out}")
+    write_page(args.out, markdown(timing, truth, args.frames))
 
 
 if __name__ == "__main__":

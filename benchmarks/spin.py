@@ -28,6 +28,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from _common import write_page  # benchmarks/_common.py (scripts run from the root)
 
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import Scenario, preset, scaled, trajectory
@@ -493,11 +494,7 @@ def main() -> None:
         print(axis.name, rate, row, flush=True)
         fold.append(row)
 
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(markdown(paper, sweep, fold))
-    tmp.replace(args.out)
-    print(f"wrote {args.out}")
+    write_page(args.out, markdown(paper, sweep, fold))
 
 
 if __name__ == "__main__":
