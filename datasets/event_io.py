@@ -13,27 +13,20 @@ Writers go to a temporary name and rename into place.
 
 from __future__ import annotations
 
-import os
-import uuid
 from pathlib import Path
 
 import numpy as np
 
 from satpose.datasets.errors import SequenceError
 from satpose.datasets.events import EventError, Events
-
-
-def _tmp(path: Path) -> Path:
-    return path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
+from satpose.datasets.sequence import atomic_write
 
 
 def write_events_h5(events: Events, path: str | Path) -> Path:
     """Write ``events`` to an HDF5 file in DSEC's layout (gzip-compressed)."""
     import h5py
 
-    path = Path(path)
-    tmp = _tmp(path)
-    try:
+    def write(tmp: Path) -> None:
         with h5py.File(tmp, "w") as f:
             g = f.create_group("events")
             g.attrs["t_offset_us"] = 0
@@ -44,10 +37,8 @@ def write_events_h5(events: Events, path: str | Path) -> Path:
                 ("p", events.p, np.uint8),
             ):
                 g.create_dataset(name, data=np.asarray(arr, dtype=dt), compression="gzip")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+
+    return atomic_write(path, write)
 
 
 def read_events_h5(path: str | Path) -> Events:
@@ -86,18 +77,15 @@ def read_events_h5(path: str | Path) -> Events:
 
 def write_events_txt(events: Events, path: str | Path) -> Path:
     """Write ``t x y p`` lines (t in seconds with microsecond resolution)."""
-    path = Path(path)
-    tmp = _tmp(path)
-    try:
-        data = np.column_stack(
-            [events.t_us // 1_000_000, events.t_us % 1_000_000, events.x, events.y, events.p]
-        )
+    data = np.column_stack(
+        [events.t_us // 1_000_000, events.t_us % 1_000_000, events.x, events.y, events.p]
+    )
+
+    def write(tmp: Path) -> None:
         with open(tmp, "w", encoding="ascii") as f:
             np.savetxt(f, data, fmt="%d.%06d %d %d %d")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+
+    return atomic_write(path, write)
 
 
 def read_events_txt(path: str | Path) -> Events:
@@ -128,16 +116,14 @@ def write_events_aedat4(events: Events, path: str | Path, width: int, height: in
     """Write an AEDAT4 file (faery) with sensor size ``width`` x ``height``."""
     import faery
 
-    path = Path(path)
-    tmp = path.parent / f".{path.stem}.tmp-{uuid.uuid4().hex[:8]}.aedat4"
     arr = np.zeros(len(events), dtype=faery.EVENTS_DTYPE)
     arr["t"], arr["x"], arr["y"], arr["on"] = events.t_us, events.x, events.y, events.p > 0
-    try:
-        faery.events_stream_from_array(arr, dimensions=(width, height)).to_file(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return atomic_write(
+        path,
+        lambda tmp: faery.events_stream_from_array(arr, dimensions=(width, height)).to_file(
+            str(tmp)
+        ),
+    )
 
 
 def read_events_aedat4(path: str | Path) -> Events:

@@ -941,6 +941,22 @@ class SequenceWriter:
         return self.path
 
 
+def atomic_write(path: str | Path, write: Any) -> Path:
+    """Call ``write(tmp_path)``, then rename the temporary file onto ``path``: readers see the
+    old file or the whole new one, never a half-written one. The temporary file sits beside
+    ``path`` with the same suffix (some writers pick the format by it) and is removed if
+    ``write`` fails."""
+    path = Path(path)
+    tmp = path.parent / f".{path.stem}.tmp-{uuid.uuid4().hex[:8]}{path.suffix}"
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
 def replace_dir(src: Path, dst: Path, overwrite: bool) -> None:
     """Rename the finished folder ``src`` to ``dst``; with ``overwrite`` swap out an existing
     ``dst`` first (``src`` and ``dst`` must share a parent, so both renames are atomic)."""

@@ -27,7 +27,6 @@ TUM: ``t tx ty tz qx qy qz qw`` per line, space separated (readable by evo).
 from __future__ import annotations
 
 import os
-import uuid
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -38,6 +37,7 @@ import pandas as pd
 
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3
+from satpose.datasets.sequence import atomic_write
 from satpose.frontend.measurements import (
     EllipseObservation,
     FrameMeasurements,
@@ -62,19 +62,6 @@ def prepare_out(out: Path) -> None:
         ) from None
     if not os.access(out, os.W_OK):
         raise ResultFileError(f"{out}: output folder is not writable")
-
-
-def atomic_write(path: str | Path, write: Any) -> Path:
-    """Call ``write(tmp_path)`` then rename the temporary file onto ``path``."""
-    path = Path(path)
-    tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
 
 
 # ----------------------------------------------------------------------------------------------
