@@ -20,7 +20,6 @@ Writes docs/results/colmap.md:
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime
 import json
 import platform
@@ -34,11 +33,8 @@ import numpy as np
 
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import (
-    MotionConfig,
     Scenario,
-    initial_rotation,
     preset,
-    rotation_center,
     scaled,
 )
 from satpose.datasets.sequence import Sequence, load_sequence
@@ -65,23 +61,6 @@ SFM_CASES: list[tuple[str, tuple[int, ...]]] = [
 brackets and wings; (0,) the background only."""
 
 
-def turntable() -> Scenario:
-    """The SfM test scene at full size: paper-docking's target turning 4 deg per frame about
-    its y axis (plus 1 deg per frame about the ring axis), bus centroid fixed on the optical
-    axis 4.5 m away; 36 frames (144 deg)."""
-    s = scaled(preset("paper-docking"), frames=36)
-    m = MotionConfig(
-        velocity_m_s=(0.0, 0.0, 0.0),
-        facing_tilt_deg=20.0,
-        tilt_azimuth_deg=90.0,
-        spin_phase_deg=15.0,
-        angular_velocity_deg_s=(0.0, -0.8, 0.2),
-    )
-    s = dataclasses.replace(s, name="turntable", motion=m)
-    start = np.array([0.0, 0.0, 4.5]) - initial_rotation(m) @ rotation_center(s)
-    return dataclasses.replace(s, motion=dataclasses.replace(m, start_position_m=tuple(start)))
-
-
 def ensure_rendered(scenario: Scenario, out: Path) -> Path:
     if not (out / "frames.csv").is_file():
         print(f"rendering {scenario.name} into {out}", flush=True)
@@ -96,7 +75,7 @@ def sequence_path(name: str, runs: Path, presets: Path | None) -> Path:
     ``runs`` if missing."""
     if presets is not None and (presets / name / "frames.csv").is_file():
         return presets / name
-    scenario = turntable() if name == "turntable" else preset(name)
+    scenario = preset(name)
     return ensure_rendered(scenario, runs / name)
 
 

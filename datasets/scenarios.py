@@ -13,8 +13,9 @@ frame, rad/s) and the velocity of the target-frame origin in the left camera fra
 
 Presets (`PRESETS`): ``paper-docking``, ``tumble``, ``close-approach`` (stereo),
 ``spin-far`` (mono, seed 001's far fast spinner), ``bracket-final`` (mono, seed 002's final
-approach) and ``calibration`` (a ChArUco board instead of the satellite, at independent
-poses: `satpose.datasets.board`). Each scales down with `scaled` (frames, image size, samples
+approach), ``calibration`` (a ChArUco board instead of the satellite, at independent
+poses: `satpose.datasets.board`) and ``turntable`` (the target turning in place: the SfM check's
+scene). Each scales down with `scaled` (frames, image size, samples
 per pixel, seed) for tests: fewer frames keep the per-frame motion and cut the sequence short.
 """
 
@@ -484,6 +485,24 @@ def calibration() -> Scenario:
     )
 
 
+def turntable() -> Scenario:
+    """A static stereo rig watching the target turn in place, the structure-from-motion check's
+    scene (docs/checks.md): paper-docking's target turning 4 deg per frame about its y axis
+    (plus 1 deg per frame about the ring axis), the bus centroid fixed on the optical axis
+    4.5 m away; 36 frames (144 deg) at 0.2 Hz."""
+    s = replace(paper_docking(), frames=36)
+    m = MotionConfig(
+        velocity_m_s=(0.0, 0.0, 0.0),
+        facing_tilt_deg=20.0,
+        tilt_azimuth_deg=90.0,
+        spin_phase_deg=15.0,
+        angular_velocity_deg_s=(0.0, -0.8, 0.2),
+    )
+    s = replace(s, name="turntable", motion=m)
+    start = np.array([0.0, 0.0, 4.5]) - initial_rotation(m) @ rotation_center(s)
+    return replace(s, motion=replace(m, start_position_m=tuple(start)))
+
+
 PRESETS: dict[str, Callable[[], Scenario]] = {
     "paper-docking": paper_docking,
     "tumble": tumble,
@@ -491,6 +510,7 @@ PRESETS: dict[str, Callable[[], Scenario]] = {
     "spin-far": spin_far,
     "bracket-final": bracket_final,
     "calibration": calibration,
+    "turntable": turntable,
 }
 
 

@@ -33,10 +33,7 @@ from satpose.datasets.errors import ConfigError
 from satpose.datasets.geometry import Rigid3, rotation_angle
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import (
-    MotionConfig,
-    initial_rotation,
     preset,
-    rotation_center,
     scaled,
 )
 from satpose.datasets.sequence import Sequence, SequenceWriter, load_sequence
@@ -64,19 +61,8 @@ AHEAD = np.array([0.0, 0.0, 6.0])  # random test poses sit 6 m in front of the c
 
 
 def turntable_scenario():  # type: ignore[no-untyped-def]
-    """paper-docking's target turning 4 deg/frame about its y axis (plus 1 deg/frame about
-    the ring axis), bus centroid fixed on the optical axis 4.5 m away."""
-    s = scaled(preset("paper-docking"), frames=FRAMES, size=(512, 384), spp=4)
-    m = MotionConfig(
-        velocity_m_s=(0.0, 0.0, 0.0),
-        facing_tilt_deg=20.0,
-        tilt_azimuth_deg=90.0,
-        spin_phase_deg=15.0,
-        angular_velocity_deg_s=(0.0, -0.8, 0.2),
-    )
-    s = dataclasses.replace(s, name="turntable", motion=m)
-    start = np.array([0.0, 0.0, 4.5]) - initial_rotation(m) @ rotation_center(s)
-    return dataclasses.replace(s, motion=dataclasses.replace(m, start_position_m=tuple(start)))
+    """The `turntable` preset, small: 8 frames at 512x384, 4 spp."""
+    return scaled(preset("turntable"), frames=FRAMES, size=(512, 384), spp=4)
 
 
 def _truth(seq: Sequence) -> list[Rigid3]:
