@@ -414,14 +414,11 @@ def _edges(
     """Sub-pixel edges along ``n`` normals of ``e`` (NaN where none). ``polarity`` 0: a rim
     brighter than its surroundings on one side and darker on the other (side light: lit foil
     beside the rim, shadow on the far side); each normal keeps the stronger of both signs."""
+    pts, nrm = e.points(n), e.normals(n)
     if polarity != 0:
-        return edges_along_normals(
-            image_s, e.points(n), e.normals(n), polarity, half, config, raw=raw
-        )[0]
-    brighter, c_b = edges_along_normals(
-        image_s, e.points(n), e.normals(n), +1, half, config, raw=raw
-    )
-    darker, c_d = edges_along_normals(image_s, e.points(n), e.normals(n), -1, half, config, raw=raw)
+        return edges_along_normals(image_s, pts, nrm, polarity, half, config, raw=raw)[0]
+    brighter, c_b = edges_along_normals(image_s, pts, nrm, +1, half, config, raw=raw)
+    darker, c_d = edges_along_normals(image_s, pts, nrm, -1, half, config, raw=raw)
     return np.where((c_d > c_b)[:, None], darker, brighter)
 
 
