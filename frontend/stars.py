@@ -3,7 +3,11 @@
 - Spots from events: the events of a time window are counted per pixel, 3x3-summed and
   thresholded; each connected blob is a star. Its position is the mean of the ON-event mean
   and the OFF-event mean (a moving star fires ON events on its leading edge and OFF events on
-  its trailing edge, so the two means straddle the star) at the mean of their times.
+  its trailing edge, so the two means straddle the star) at the mean of their times. In
+  tracking this balanced centroid starts a moving-spot fit (`fit_moving_spots`) of every
+  event as a threshold-level crossing (`pixel_passes`, `ladder_levels`), which removes the
+  centroid's along-track lag under threshold mismatch and its blindness to sub-pixel
+  cross-track motion at slow slews (docs/stars.md).
 - Spots from frames: background (median) and noise (MAD) per image, threshold, connected
   blobs, intensity-weighted centroid.
 - Identification (lost in space): tetra3rs' geometric-hashing plate solver on a multi-scale
@@ -17,7 +21,8 @@
   infinity (no translation: E = [t]x R = 0).
 - Tracking: catalogue stars projected with the attitude predicted from the last attitude and
   rate; events within a gate of each prediction are that star's (no image, no blobs, no plate
-  solve), then Wahba. Falls back to lost-in-space when fewer than ``min_stars`` remain.
+  solve), balanced centroid, spot fit, then Wahba with per-star weights. Falls back to
+  lost-in-space when fewer than ``min_stars`` remain.
 
 Camera frame OpenCV; attitude ``inertial_from_camera`` (ICRS). Never imports gtsam.
 """
@@ -27,7 +32,7 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import cv2
@@ -189,60 +194,64 @@ def pixel_passes(
     """The pass structure of a time-sorted event stream (`PixelPasses`).
 
     ``edge_s`` defaults to half the 95th percentile of the complete passes' durations (first
-    ON to last OFF event): about one rise or fall.
+    ON to last OFF event): about one rise or fall; 0 treats no run as cut.
     """
-    pix = np.asarray(y).astype(np.int64) * 65536 + np.asarray(x).astype(np.int64)
-    order = np.argsort(pix, kind="stable")  # time order kept within a pixel
-    ps = pix[order]
-    pp = np.asarray(p)[order].astype(np.int64)
-    ts = np.asarray(t_s, float)[order]
+    # Stable sort by pixel (radix sorts of the 16-bit coordinates): time order kept within it.
+    order = np.lexsort((np.asarray(x), np.asarray(y)))
     n_ev = order.size
     if n_ev == 0:
-        z = np.zeros(0, dtype=np.int64)
+        z = np.zeros(0, dtype=np.int32)
         return PixelPasses(z, z, z, z.astype(bool), z.astype(bool), 0.0)
+    ps = np.asarray(y)[order].astype(np.int32) * 65536 + np.asarray(x)[order]
+    pp = np.asarray(p)[order]
+    t = np.asarray(t_s, float)
     new_run = np.ones(n_ev, dtype=bool)
     new_run[1:] = (ps[1:] != ps[:-1]) | (pp[1:] != pp[:-1])
-    run_id = np.cumsum(new_run) - 1
-    starts = np.flatnonzero(new_run)
+    starts = np.flatnonzero(new_run).astype(np.int32)
     ends = np.append(starts[1:], n_ev) - 1
     length = ends - starts + 1
-    run_pix, run_pol = ps[starts], pp[starts]
+    run_pix, run_pol = ps[starts], pp[starts].astype(np.int8)
+    t_start, t_end = t[order[starts]], t[order[ends]]
     n_runs = starts.size
     on_then_off = np.zeros(n_runs, dtype=bool)  # run k is ON and run k + 1 its OFF run
     on_then_off[:-1] = (run_pix[1:] == run_pix[:-1]) & (run_pol[:-1] == 1) & (run_pol[1:] == 0)
-    partner = np.zeros(n_runs, dtype=np.int64)
+    partner = np.zeros(n_runs, dtype=np.int32)
     partner[:-1] = np.where(on_then_off[:-1], length[1:], 0)
     partner[1:] += np.where(on_then_off[:-1], length[:-1], 0)
     if edge_s is None:
         k = np.flatnonzero(on_then_off)
-        dur = ts[ends[k + 1]] - ts[starts[k]]
+        dur = t_end[k + 1] - t_start[k]
         edge_s = 0.5 * float(np.percentile(dur, 95)) if dur.size else 0.0
     first_of_pix = np.ones(n_runs, dtype=bool)
     first_of_pix[1:] = run_pix[1:] != run_pix[:-1]
     last_of_pix = np.ones(n_runs, dtype=bool)
     last_of_pix[:-1] = run_pix[:-1] != run_pix[1:]
-    early = first_of_pix & (ts[starts] <= float(ts.min()) + edge_s)
+    early = first_of_pix & (t_start < float(t.min()) + edge_s)
     cut_start = early.copy()
     cut_start[1:] |= on_then_off[:-1] & early[:-1]
-    cut_end = (run_pol == 1) & last_of_pix & (ts[ends] >= float(ts.max()) - edge_s)
-
-    def back(a: np.ndarray) -> np.ndarray:
-        out = np.empty_like(a)
-        out[order] = a
-        return out
-
+    cut_end = (run_pol == 1) & last_of_pix & (t_end > float(t.max()) - edge_s)
+    # Back to the events' order: each event's run and its index in the sorted order.
+    run_sorted = np.cumsum(new_run, dtype=np.int32) - 1
+    rank = np.empty(n_ev, dtype=np.int32)
+    rank[order] = np.arange(n_ev, dtype=np.int32)
+    run = run_sorted[rank]
     return PixelPasses(
-        pos=back(np.arange(n_ev) - starts[run_id]),
-        run_len=back(length[run_id]),
-        partner_len=back(partner[run_id]),
-        cut_start=back(cut_start[run_id]),
-        cut_end=back(cut_end[run_id]),
+        pos=rank - starts[run],
+        run_len=length[run],
+        partner_len=partner[run],
+        cut_start=cut_start[run],
+        cut_end=cut_end[run],
         edge_s=float(edge_s),
     )
 
 
 def matched_ladder_events(
-    t_s: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray, edge_s: float | None = None
+    t_s: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    p: np.ndarray,
+    edge_s: float | None = None,
+    passes: PixelPasses | None = None,
 ) -> np.ndarray:
     """Mask of the events that form level-matched ON/OFF pairs within each pixel's passes.
 
@@ -265,7 +274,7 @@ def matched_ladder_events(
     cut by either end without their top event if it is followed by an OFF event, else whole
     (`peak_on_events`' behaviour there, for about one rise or fall).
     """
-    ps = pixel_passes(t_s, x, y, p, edge_s)
+    ps = passes if passes is not None else pixel_passes(t_s, x, y, p, edge_s)
     on = np.asarray(p) == 1
     pos, L = ps.pos, ps.run_len
     K = np.where(on, np.minimum(L - 1, ps.partner_len), np.minimum(ps.partner_len - 1, L))
@@ -341,7 +350,7 @@ def fit_moving_spots(
     log_flux0: np.ndarray,
     psf_sigma_px: float,
     level_sigma: np.ndarray,
-    iterations: int = 6,
+    iterations: int = 3,
 ) -> SpotFit:
     """Fit moving Gaussian spots to events as level crossings (Gauss-Newton, all stars at once).
 
@@ -546,6 +555,11 @@ class StarTrackerConfig:
             spot fit assumes.
         fit_sigma_floor_px: added in quadrature to each spot fit's own position sigma
             (model errors the fit's residuals do not show).
+        fit_max_events: most events per star the spot fit uses (evenly thinned beyond).
+        fit_max_stars: most stars the spot fit (and then Wahba) uses: those with the most
+            events.
+        scale_by_residuals: multiply each Wahba covariance by the reduced chi-square of its
+            residuals when that exceeds 1.
         mag_limit: faintest catalogue star predicted in tracking.
         epoch_yr: epoch of the solver catalogue.
     """
@@ -565,6 +579,9 @@ class StarTrackerConfig:
     threshold_sigma: float = 0.03
     psf_sigma_px: float = 0.8
     fit_sigma_floor_px: float = 0.05
+    fit_max_events: int = 24
+    fit_max_stars: int = 40
+    scale_by_residuals: bool = True
     mag_limit: float = 7.5
     epoch_yr: float = 2026.9
 
@@ -595,6 +612,10 @@ class AttitudeSolution:
         star_ids: catalogue ids of the stars used, (M,).
         b_cam: their bearings (M, 3).
         cpu_ms: processing CPU time of this output [ms].
+        span_s: time span of the data behind it (event tracking: the integration span,
+            which can be longer than the output period; frames: 0).
+        stream_cpu_ms: this output's even share of the CPU time of the whole-stream event
+            analysis (`run_event_tracker`: pass structure, levels, selection) [ms].
     """
 
     t_s: float
@@ -604,6 +625,8 @@ class AttitudeSolution:
     star_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     b_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     cpu_ms: float = 0.0
+    span_s: float = 0.0
+    stream_cpu_ms: float = 0.0
 
 
 class StarTracker:
@@ -654,6 +677,12 @@ class StarTracker:
         if not ok.all():
             b, r, ids, sig = b[ok], r[ok], ids[ok], sig[ok]
             R, cov = wahba(b, r, sig)
+        if c.scale_by_residuals:
+            # Residuals larger than the assumed noise (2 DOF per star, 3 fitted) widen the
+            # covariance; smaller ones never shrink it.
+            res = np.linalg.norm(np.cross(r, b @ R.T), axis=1)
+            chi2 = float(np.sum((res / sig) ** 2)) / max(2 * ids.size - 3, 1)
+            cov = cov * max(1.0, chi2)
         return AttitudeSolution(t_s, R, cov, status, ids, b)
 
     def identify(self, spots: Spots, t_s: float) -> AttitudeSolution:
@@ -783,7 +812,7 @@ class StarTracker:
             sol = self.identify(
                 event_spots(blobs, self.cam.width, self.cam.height, 2 * c.min_events), t_mid
             )
-        return self._accept(_with_cpu(sol, start))
+        return self._accept(_with_cpu(sol, start, span_s or (t1_s - t0_s)))
 
     def _track_gated(
         self,
@@ -839,7 +868,13 @@ class StarTracker:
         if levels is None or c.centroid != "spot_fit" or len(self.history) < 2:
             # (Without a rate the fit would take moving stars for still ones.)
             return self._solve(t_mid, b_mid, self.cat.ids[rows[ok]], "tracking")
-        # Moving-spot fit, started from the moved centroids, velocity from the predicted rate.
+        # Moving-spot fit, started from the moved centroids, velocity from the predicted rate,
+        # on the fit_max_stars stars with the most events (CPU per output bounded).
+        if ok.sum() > c.fit_max_stars:
+            keep_rows = np.flatnonzero(ok)[np.argsort(-cnt[ok], kind="stable")]
+            sub = np.isin(np.flatnonzero(ok), keep_rows[: c.fit_max_stars])
+            ok[np.flatnonzero(ok)[~sub]] = False
+            b_mid = b_mid[sub]
         px_mid = b_mid[:, :2] / b_mid[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
         db = np.cross(b_mid, w)
         vel = (db[:, :2] * b_mid[:, 2:3] - b_mid[:, :2] * db[:, 2:3]) / b_mid[:, 2:3] ** 2
@@ -849,6 +884,12 @@ class StarTracker:
         hit = gated
         li = new_lab[lab[hit]]
         use = (li >= 0) & (levels[hit] > 0)
+        # At most about fit_max_events per star (a deterministic, evenly spread subset: the
+        # golden-ratio sequence of the event index): CPU per output stays bounded at fast
+        # slews, where a star fires hundreds of events per window.
+        n_star = np.bincount(li[use], minlength=int(ok.sum()))
+        frac = (np.arange(li.size) * 0.6180339887498949) % 1.0
+        use &= frac < c.fit_max_events / np.maximum(n_star, 1)[np.maximum(li, 0)]
         lvl = levels[hit][use]
         li = li[use]
         top = np.zeros(int(ok.sum()))
@@ -882,16 +923,8 @@ def _subset(events: Events, keep: np.ndarray) -> Events:
     return Events(t_us=events.t_us[keep], x=events.x[keep], y=events.y[keep], p=events.p[keep])
 
 
-def _with_cpu(sol: AttitudeSolution, start: float) -> AttitudeSolution:
-    return AttitudeSolution(
-        sol.t_s,
-        sol.R,
-        sol.cov,
-        sol.status,
-        sol.star_ids,
-        sol.b_cam,
-        1e3 * (time.process_time() - start),
-    )
+def _with_cpu(sol: AttitudeSolution, start: float, span_s: float = 0.0) -> AttitudeSolution:
+    return replace(sol, cpu_ms=1e3 * (time.process_time() - start), span_s=span_s)
 
 
 def run_event_tracker(
@@ -902,19 +935,26 @@ def run_event_tracker(
     lost, consecutive windows of ``lis_window_s`` (doubled after each failure, up to 8x) go to
     the lost-in-space solver. With
     ``event_selection`` the stream's events are selected first (`matched_ladder_events`,
-    `peak_on_events`)."""
+    `peak_on_events`); with ``centroid="spot_fit"`` every event's threshold level is
+    computed first (`ladder_levels`). Each output's ``stream_cpu_ms`` is an even share of
+    that whole-stream step."""
     c = tracker.config
+    cpu0 = time.process_time()
     selected = np.ones(len(events), dtype=bool)
+    passes = None
+    if len(events) and (c.event_selection == "matched" or c.centroid == "spot_fit"):
+        passes = pixel_passes(events.t_s, events.x, events.y, events.p)
     if c.event_selection == "matched" and len(events):
-        selected = matched_ladder_events(events.t_s, events.x, events.y, events.p)
+        selected = matched_ladder_events(events.t_s, events.x, events.y, events.p, passes=passes)
     elif c.event_selection == "drop_peak" and len(events):
         selected = ~peak_on_events(events.x, events.y, events.p)
     levels: np.ndarray | None = None
-    if c.centroid == "spot_fit" and len(events):
-        levels = ladder_levels(events.p, pixel_passes(events.t_s, events.x, events.y, events.p))
+    if c.centroid == "spot_fit" and passes is not None:
+        levels = ladder_levels(events.p, passes)
     else:
         events = _subset(events, selected)
         selected = np.ones(len(events), dtype=bool)
+    prep_cpu_ms = 1e3 * (time.process_time() - cpu0)
 
     def window(a: float, b: float) -> tuple[Events, np.ndarray, np.ndarray | None]:
         i0, i1 = np.searchsorted(events.t_us, [round(a * 1e6), round(b * 1e6)])
@@ -938,7 +978,21 @@ def run_event_tracker(
                 # centre (still later than the lost-in-space output before it).
                 sol = tracker.track_events(ev, b - span, b, levels=lv, selected=sel)
             else:
+                saved = list(tracker.history)
                 sol = tracker.track_events(ev, t, b, span_s=span, levels=lv, selected=sel)
+                cpu = sol.cpu_ms
+                # Too few events (the stars nearly stop along track when the jitter cancels
+                # a slow slew): retry the same output with twice the span, up to
+                # lis_window_s, before giving up tracking. Only once the rate rests on half
+                # the rate history (right after acquisition a failure means a bad rate).
+                settled = len(saved) > c.rate_history // 2
+                while settled and sol.status != "tracking" and span < c.lis_window_s:
+                    span = min(2 * span, c.lis_window_s)
+                    tracker.history[:] = saved
+                    ev, sel, lv = window(max(t0_s, b - span), b)
+                    sol = tracker.track_events(ev, t, b, span_s=span, levels=lv, selected=sel)
+                    cpu += sol.cpu_ms
+                sol = replace(sol, cpu_ms=cpu)
         else:
             # Lost: non-overlapping lost-in-space windows, so output times keep increasing;
             # after each failure the next window is twice as long (up to 8x): few stars fire
@@ -951,4 +1005,7 @@ def run_event_tracker(
         out.append(sol)
         fails = fails + 1 if sol.R is None else 0
         t = b
-    return out
+    # The whole-stream pass analysis (incremental per event in an online system) is charged
+    # to the outputs evenly.
+    share = prep_cpu_ms / max(len(out), 1)
+    return [replace(s, stream_cpu_ms=share) for s in out]
