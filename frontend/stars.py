@@ -193,8 +193,8 @@ def pixel_passes(
 ) -> PixelPasses:
     """The pass structure of a time-sorted event stream (`PixelPasses`).
 
-    ``edge_s`` defaults to half the 95th percentile of the complete passes' durations (first
-    ON to last OFF event): about one rise or fall; 0 treats no run as cut.
+    ``edge_s`` defaults to the 95th percentile of the runs' durations (first to last event):
+    about one rise or fall; 0 treats no run as cut.
     """
     # Stable sort by pixel (radix sorts of the 16-bit coordinates): time order kept within it.
     order = np.lexsort((np.asarray(x), np.asarray(y)))
@@ -219,9 +219,9 @@ def pixel_passes(
     partner[:-1] = np.where(on_then_off[:-1], length[1:], 0)
     partner[1:] += np.where(on_then_off[:-1], length[:-1], 0)
     if edge_s is None:
-        k = np.flatnonzero(on_then_off)
-        dur = t_end[k + 1] - t_start[k]
-        edge_s = 0.5 * float(np.percentile(dur, 95)) if dur.size else 0.0
+        # About one rise or fall: the 95th percentile of the runs' durations (cut runs
+        # included: at slow slews most passes outlast a short recording).
+        edge_s = float(np.percentile(t_end - t_start, 95))
     first_of_pix = np.ones(n_runs, dtype=bool)
     first_of_pix[1:] = run_pix[1:] != run_pix[:-1]
     last_of_pix = np.ones(n_runs, dtype=bool)
@@ -545,9 +545,12 @@ class StarTrackerConfig:
         rate_history: windows over which the rate for the prediction is differenced.
         min_motion_px: star motion the events of one tracking output must span (slow slews
             integrate longer than ``window_s``; outputs stay ``window_s`` apart).
-        event_selection: which events the balanced centroid uses, decided on the whole
-            stream: ``matched`` (`matched_ladder_events`: level-matched ON/OFF pairs per
-            pixel pass), ``drop_peak`` (`peak_on_events` left out) or ``all``.
+        event_selection: which events the balanced centroid (the spot fit's start, the
+            lost-in-space blobs) uses, decided on the whole stream: ``all``,
+            ``matched`` (`matched_ladder_events`: level-matched ON/OFF pairs per pixel pass;
+            the best choice for ``centroid="balanced"`` at slews, but it starves the
+            tracker at 0.1 deg/s where most passes outlast the recording) or ``drop_peak``
+            (`peak_on_events` left out).
         centroid: star position in tracking: ``spot_fit`` (`fit_moving_spots` on every
             event's threshold level, started from the balanced centroid) or ``balanced``.
         contrast_threshold, threshold_sigma, psf_sigma_px: the event sensor's nominal
@@ -573,7 +576,7 @@ class StarTrackerConfig:
     outlier_sigma: float = 5.0
     rate_history: int = 20
     min_motion_px: float = 0.15
-    event_selection: Literal["matched", "drop_peak", "all"] = "matched"
+    event_selection: Literal["matched", "drop_peak", "all"] = "all"
     centroid: Literal["spot_fit", "balanced"] = "spot_fit"
     contrast_threshold: float = 0.25
     threshold_sigma: float = 0.03
@@ -726,12 +729,19 @@ class StarTracker:
 
     def integration_s(self) -> float:
         """Event span for a tracking output: long enough for the stars to move
-        ``min_motion_px`` at the current rate, between ``window_s`` and ``lis_window_s``."""
+        ``min_motion_px`` at the current rate, between ``window_s`` and ``lis_window_s``.
+        Until the rate rests on half the rate history (right after acquisition, when a
+        failed output cannot be retried) the motion asked for is doubled."""
         c = self.config
         speed = float(np.linalg.norm(self.body_rate_rad_s())) * self.cam.fx  # px/s near the centre
         if speed <= 0:
             return c.lis_window_s
-        return float(np.clip(c.min_motion_px / speed, c.window_s, c.lis_window_s))
+        motion = c.min_motion_px * (1.0 if self.rate_settled() else 2.0)
+        return float(np.clip(motion / speed, c.window_s, c.lis_window_s))
+
+    def rate_settled(self) -> bool:
+        """Whether the rate rests on more than half the rate history."""
+        return len(self.history) > self.config.rate_history // 2
 
     def predicted_stars(self, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Catalogue rows (bright enough) in view of attitude ``R`` and their pixels."""
@@ -979,13 +989,13 @@ def run_event_tracker(
                 sol = tracker.track_events(ev, b - span, b, levels=lv, selected=sel)
             else:
                 saved = list(tracker.history)
+                settled = tracker.rate_settled()
                 sol = tracker.track_events(ev, t, b, span_s=span, levels=lv, selected=sel)
                 cpu = sol.cpu_ms
                 # Too few events (the stars nearly stop along track when the jitter cancels
                 # a slow slew): retry the same output with twice the span, up to
-                # lis_window_s, before giving up tracking. Only once the rate rests on half
-                # the rate history (right after acquisition a failure means a bad rate).
-                settled = len(saved) > c.rate_history // 2
+                # lis_window_s, before giving up tracking. Only once the rate is settled
+                # (right after acquisition a failure more likely means a bad rate).
                 while settled and sol.status != "tracking" and span < c.lis_window_s:
                     span = min(2 * span, c.lis_window_s)
                     tracker.history[:] = saved
