@@ -177,6 +177,8 @@ class PixelPasses:
             before the recording, above the resting level).
         cut_end: the run is its pixel's last, is ON and ends within ``edge_s`` of the
             stream's last event (the pass may not be over).
+        open_end: the run's pass may not have returned to rest before the stream ended (its
+            last run is its pixel's last and ends within ``edge_s`` of the last event).
         edge_s: the edge length used.
     """
 
@@ -185,6 +187,7 @@ class PixelPasses:
     partner_len: np.ndarray
     cut_start: np.ndarray
     cut_end: np.ndarray
+    open_end: np.ndarray
     edge_s: float
 
 
@@ -201,7 +204,7 @@ def pixel_passes(
     n_ev = order.size
     if n_ev == 0:
         z = np.zeros(0, dtype=np.int32)
-        return PixelPasses(z, z, z, z.astype(bool), z.astype(bool), 0.0)
+        return PixelPasses(z, z, z, z.astype(bool), z.astype(bool), z.astype(bool), 0.0)
     ps = np.asarray(y)[order].astype(np.int32) * 65536 + np.asarray(x)[order]
     pp = np.asarray(p)[order]
     t = np.asarray(t_s, float)
@@ -229,7 +232,10 @@ def pixel_passes(
     early = first_of_pix & (t_start < float(t.min()) + edge_s)
     cut_start = early.copy()
     cut_start[1:] |= on_then_off[:-1] & early[:-1]
-    cut_end = (run_pol == 1) & last_of_pix & (t_end > float(t.max()) - edge_s)
+    late = last_of_pix & (t_end > float(t.max()) - edge_s)
+    cut_end = (run_pol == 1) & late
+    open_end = late.copy()
+    open_end[:-1] |= on_then_off[:-1] & late[1:]
     # Back to the events' order: each event's run and its index in the sorted order.
     run_sorted = np.cumsum(new_run, dtype=np.int32) - 1
     rank = np.empty(n_ev, dtype=np.int32)
@@ -241,6 +247,7 @@ def pixel_passes(
         partner_len=partner[run],
         cut_start=cut_start[run],
         cut_end=cut_end[run],
+        open_end=open_end[run],
         edge_s=float(edge_s),
     )
 
@@ -295,7 +302,7 @@ def ladder_levels(p: np.ndarray, passes: PixelPasses) -> np.ndarray:
     the mismatch makes these levels wrong by ``k dC_on`` and ``n dC_on - k dC_off``, zero on
     average). Passes whose start was not seen (cut by the start of the stream) are anchored
     at their end instead: the last OFF event lies in ``(L0, L0 + C_off]``, taken as
-    ``L0 + C / 2``.
+    ``L0 + C / 2``; passes cut at both ends get NaN (the fit leaves them out).
     """
     on = np.asarray(p) == 1
     pos, L, part = passes.pos, passes.run_len, passes.partner_len
@@ -307,7 +314,8 @@ def ladder_levels(p: np.ndarray, passes: PixelPasses) -> np.ndarray:
     lvl = np.where(early_on, part + 0.5 - (L - 1 - pos), lvl)
     early_off = passes.cut_start & ~on & (part > 0)
     lvl = np.where(early_off, L - pos - 0.5, lvl)
-    return lvl
+    # Neither end seen at rest (at slow slews passes outlast a short recording): no anchor.
+    return np.where(passes.cut_start & passes.open_end, np.nan, lvl)
 
 
 def _pixel_psf(u: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -351,6 +359,7 @@ def fit_moving_spots(
     psf_sigma_px: float,
     level_sigma: np.ndarray,
     iterations: int = 3,
+    vel_sigma_px_s: float = 0.0,
 ) -> SpotFit:
     """Fit moving Gaussian spots to events as level crossings (Gauss-Newton, all stars at once).
 
@@ -359,19 +368,31 @@ def fit_moving_spots(
     ``log(1 + F_s G(x - X_s(dt), y - Y_s(dt)))`` with the pixel-integrated PSF ``G`` and
     ``X_s(dt) = px_s + vel_s dt``, equals its threshold level ``level`` (in log units). The
     unknowns per star are the position and ``log F_s`` (relative to the background); the
-    velocity comes from the predicted rate. Residuals are weighted by ``1 / level_sigma``
-    with a Huber loss (noise events). Unlike a centroid of counts, this uses where every
-    level was crossed, so a sub-pixel cross-track shift moves the crossing times even when
-    it changes no pixel's event count.
+    velocity comes from the predicted rate, or with ``vel_sigma_px_s > 0`` it is fitted too
+    with that prior around ``vel`` (for slow slews, where the jitter's velocity exceeds the
+    slew's). Residuals are weighted by ``1 / level_sigma`` with a Huber loss (noise events).
+    Unlike a centroid of counts, this uses where every level was crossed, so a sub-pixel
+    cross-track shift moves the crossing times even when it changes no pixel's event count.
     """
     S = px0.shape[0]
-    state = np.column_stack([px0, log_flux0]).astype(float)
+    P = 5 if vel_sigma_px_s > 0 else 3
+    state = np.column_stack([px0, log_flux0, vel][:P] if P == 5 else [px0, log_flux0])
+    state = state.astype(float)
+    v0 = np.asarray(vel, float)
     w0 = 1.0 / np.asarray(level_sigma, float) ** 2
     cnt = np.bincount(lab, minlength=S)
-    H = np.zeros((S, 3, 3))
+    H = np.zeros((S, P, P))
+    prior = np.zeros((P, P))
+    if P == 5:
+        prior[3, 3] = prior[4, 4] = 1.0 / vel_sigma_px_s**2
+
+    def velocity() -> np.ndarray:
+        return state[:, 3:5] if P == 5 else v0
+
     for _ in range(iterations):
-        cx = state[lab, 0] + vel[lab, 0] * dt
-        cy = state[lab, 1] + vel[lab, 1] * dt
+        v = velocity()
+        cx = state[lab, 0] + v[lab, 0] * dt
+        cy = state[lab, 1] + v[lab, 1] * dt
         gx, dgx = _pixel_psf(x - cx, psf_sigma_px)
         gy, dgy = _pixel_psf(y - cy, psf_sigma_px)
         F = np.exp(state[lab, 2])
@@ -379,18 +400,22 @@ def fit_moving_spots(
         den = 1.0 + F * G
         r = np.log(den) - level
         # d r / d centre: d/dcx gx(x - cx) = -gx'(x - cx) = dgx as defined (centre derivative).
-        J = np.column_stack([F * dgx * gy / den, F * gx * dgy / den, F * G / den])
+        jx, jy = F * dgx * gy / den, F * gx * dgy / den
+        cols = [jx, jy, F * G / den] + ([jx * dt, jy * dt] if P == 5 else [])
+        J = np.column_stack(cols)
         rs = np.abs(r) * np.sqrt(w0)
         w = w0 * np.where(rs > 2.0, 2.0 / np.maximum(rs, 1e-12), 1.0)  # Huber at 2 sigma
-        g = np.zeros((S, 3))
-        for i in range(3):
+        g = np.zeros((S, P))
+        for i in range(P):
             g[:, i] = np.bincount(lab, weights=w * J[:, i] * r, minlength=S)
-            for j in range(i, 3):
+            for j in range(i, P):
                 H[:, i, j] = H[:, j, i] = np.bincount(
                     lab, weights=w * J[:, i] * J[:, j], minlength=S
                 )
-        Hd = H + 1e-9 * np.eye(3)
-        step = -np.linalg.solve(Hd, g[:, :, None])[:, :, 0]
+        H += prior
+        if P == 5:
+            g[:, 3:5] += (state[:, 3:5] - v0) / vel_sigma_px_s**2
+        step = -np.linalg.solve(H + 1e-9 * np.eye(P), g[:, :, None])[:, :, 0]
         step[:, :2] = np.clip(step[:, :2], -0.5, 0.5)
         step[:, 2] = np.clip(step[:, 2], -1.0, 1.0)
         state += np.where((cnt >= 4)[:, None], step, 0.0)
@@ -398,13 +423,14 @@ def fit_moving_spots(
     ok &= np.all(np.abs(state[:, :2] - px0) < 1.5, axis=1)
     # Residuals at the solution: one chi-square scale for the window (per star it would rest
     # on a handful of events).
-    gx, _ = _pixel_psf(x - state[lab, 0] - vel[lab, 0] * dt, psf_sigma_px)
-    gy, _ = _pixel_psf(y - state[lab, 1] - vel[lab, 1] * dt, psf_sigma_px)
+    v = velocity()
+    gx, _ = _pixel_psf(x - state[lab, 0] - v[lab, 0] * dt, psf_sigma_px)
+    gy, _ = _pixel_psf(y - state[lab, 1] - v[lab, 1] * dt, psf_sigma_px)
     r = np.log1p(np.exp(state[lab, 2]) * gx * gy) - level
     used = ok[lab]
-    dof = int(used.sum()) - 3 * int(ok.sum())
+    dof = int(used.sum()) - P * int(ok.sum())
     chi2 = float(np.sum((w * r * r)[used])) / dof if dof > 0 else 1.0
-    cov_full = np.linalg.inv(H + 1e-9 * np.eye(3)) * chi2
+    cov_full = np.linalg.inv(H + 1e-9 * np.eye(P)) * chi2
     return SpotFit(state[:, :2], state[:, 2], cov_full[:, :2, :2], cnt, ok)
 
 
@@ -546,11 +572,11 @@ class StarTrackerConfig:
         min_motion_px: star motion the events of one tracking output must span (slow slews
             integrate longer than ``window_s``; outputs stay ``window_s`` apart).
         event_selection: which events the balanced centroid (the spot fit's start, the
-            lost-in-space blobs) uses, decided on the whole stream: ``all``,
-            ``matched`` (`matched_ladder_events`: level-matched ON/OFF pairs per pixel pass;
-            the best choice for ``centroid="balanced"`` at slews, but it starves the
-            tracker at 0.1 deg/s where most passes outlast the recording) or ``drop_peak``
-            (`peak_on_events` left out).
+            lost-in-space blobs) uses, decided on the whole stream: ``drop_peak``
+            (`peak_on_events` left out), ``matched`` (`matched_ladder_events`: level-matched
+            ON/OFF pairs per pixel pass; the best choice for ``centroid="balanced"`` at
+            slews, but it starves the tracker at 0.1 deg/s where most passes outlast the
+            recording) or ``all``.
         centroid: star position in tracking: ``spot_fit`` (`fit_moving_spots` on every
             event's threshold level, started from the balanced centroid) or ``balanced``.
         contrast_threshold, threshold_sigma, psf_sigma_px: the event sensor's nominal
@@ -561,6 +587,8 @@ class StarTrackerConfig:
         fit_max_events: most events per star the spot fit uses (evenly thinned beyond).
         fit_max_stars: most stars the spot fit (and then Wahba) uses: those with the most
             events.
+        fit_velocity_sigma_px_s: > 0: the spot fit also fits each star's image velocity,
+            with this prior sigma around the predicted one [px/s].
         scale_by_residuals: multiply each Wahba covariance by the reduced chi-square of its
             residuals when that exceeds 1.
         mag_limit: faintest catalogue star predicted in tracking.
@@ -576,7 +604,7 @@ class StarTrackerConfig:
     outlier_sigma: float = 5.0
     rate_history: int = 20
     min_motion_px: float = 0.15
-    event_selection: Literal["matched", "drop_peak", "all"] = "all"
+    event_selection: Literal["matched", "drop_peak", "all"] = "drop_peak"
     centroid: Literal["spot_fit", "balanced"] = "spot_fit"
     contrast_threshold: float = 0.25
     threshold_sigma: float = 0.03
@@ -584,6 +612,7 @@ class StarTrackerConfig:
     fit_sigma_floor_px: float = 0.05
     fit_max_events: int = 24
     fit_max_stars: int = 40
+    fit_velocity_sigma_px_s: float = 0.0
     scale_by_residuals: bool = True
     mag_limit: float = 7.5
     epoch_yr: float = 2026.9
@@ -730,8 +759,8 @@ class StarTracker:
     def integration_s(self) -> float:
         """Event span for a tracking output: long enough for the stars to move
         ``min_motion_px`` at the current rate, between ``window_s`` and ``lis_window_s``.
-        Until the rate rests on half the rate history (right after acquisition, when a
-        failed output cannot be retried) the motion asked for is doubled."""
+        Until the rate is settled (`rate_settled`: right after acquisition, when a failed
+        output is not retried) the motion asked for is doubled."""
         c = self.config
         speed = float(np.linalg.norm(self.body_rate_rad_s())) * self.cam.fx  # px/s near the centre
         if speed <= 0:
@@ -740,8 +769,9 @@ class StarTracker:
         return float(np.clip(motion / speed, c.window_s, c.lis_window_s))
 
     def rate_settled(self) -> bool:
-        """Whether the rate rests on more than half the rate history."""
-        return len(self.history) > self.config.rate_history // 2
+        """Whether the rate rests on two tracked outputs after the last acquisition (the
+        first one after a lost-in-space solve has no rate to compensate motion with)."""
+        return len(self.history) >= 3
 
     def predicted_stars(self, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Catalogue rows (bright enough) in view of attitude ``R`` and their pixels."""
@@ -918,6 +948,7 @@ class StarTracker:
             log_flux0,
             c.psf_sigma_px,
             np.hypot(0.03, lvl * c.threshold_sigma),
+            vel_sigma_px_s=c.fit_velocity_sigma_px_s,
         )
         good = fit.ok
         if good.sum() < c.min_stars:
