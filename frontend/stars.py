@@ -179,6 +179,10 @@ class PixelPasses:
             stream's last event (the pass may not be over).
         open_end: the run's pass may not have returned to rest before the stream ended (its
             last run is its pixel's last and ends within ``edge_s`` of the last event).
+        net: the pixel's polarity sum (+1 ON, -1 OFF) up to and including the event.
+        net_last: the pixel's polarity sum over all its events.
+        pixel_cut_start: the pixel's first run is ``cut_start``.
+        pixel_open_end: the pixel's last run is ``open_end``.
         edge_s: the edge length used.
     """
 
@@ -188,6 +192,10 @@ class PixelPasses:
     cut_start: np.ndarray
     cut_end: np.ndarray
     open_end: np.ndarray
+    net: np.ndarray
+    net_last: np.ndarray
+    pixel_cut_start: np.ndarray
+    pixel_open_end: np.ndarray
     edge_s: float
 
 
@@ -204,7 +212,8 @@ def pixel_passes(
     n_ev = order.size
     if n_ev == 0:
         z = np.zeros(0, dtype=np.int32)
-        return PixelPasses(z, z, z, z.astype(bool), z.astype(bool), z.astype(bool), 0.0)
+        b = z.astype(bool)
+        return PixelPasses(z, z, z, b, b, b, z, z, b, b, 0.0)
     ps = np.asarray(y)[order].astype(np.int32) * 65536 + np.asarray(x)[order]
     pp = np.asarray(p)[order]
     t = np.asarray(t_s, float)
@@ -236,11 +245,23 @@ def pixel_passes(
     cut_end = (run_pol == 1) & late
     open_end = late.copy()
     open_end[:-1] |= on_then_off[:-1] & late[1:]
-    # Back to the events' order: each event's run and its index in the sorted order.
+    # Per pixel: the polarity sum so far and over all its events, its first and last run.
+    pix_start = np.ones(n_ev, dtype=bool)
+    pix_start[1:] = ps[1:] != ps[:-1]
+    pix_id = np.cumsum(pix_start, dtype=np.int32) - 1
+    sgn = np.where(pp == 1, 1, -1).astype(np.int32)
+    cs = np.cumsum(sgn, dtype=np.int32)
+    first_ev = np.flatnonzero(pix_start)
+    net_sorted = cs - (cs[first_ev] - sgn[first_ev])[pix_id]
+    last_ev = np.append(first_ev[1:], n_ev) - 1
     run_sorted = np.cumsum(new_run, dtype=np.int32) - 1
+    pix_cut = cut_start[run_sorted[first_ev]]
+    pix_open = open_end[run_sorted[last_ev]]
+    # Back to the events' order: each event's run and its index in the sorted order.
     rank = np.empty(n_ev, dtype=np.int32)
     rank[order] = np.arange(n_ev, dtype=np.int32)
     run = run_sorted[rank]
+    pid = pix_id[rank]
     return PixelPasses(
         pos=rank - starts[run],
         run_len=length[run],
@@ -248,6 +269,10 @@ def pixel_passes(
         cut_start=cut_start[run],
         cut_end=cut_end[run],
         open_end=open_end[run],
+        net=net_sorted[rank],
+        net_last=net_sorted[last_ev][pid],
+        pixel_cut_start=pix_cut[pid],
+        pixel_open_end=pix_open[pid],
         edge_s=float(edge_s),
     )
 
@@ -297,25 +322,22 @@ def matched_ladder_events(
 def ladder_levels(p: np.ndarray, passes: PixelPasses) -> np.ndarray:
     """Each event's threshold level above its pixel's resting level, in thresholds ``C``.
 
-    In a pass of ``n`` ON and ``m`` OFF events, the ``k``-th ON event crosses ``L0 + k C``
-    and the ``k``-th OFF event ``L0 + (n - k) C`` (nominal ``C`` for ``C_on`` and ``C_off``:
-    the mismatch makes these levels wrong by ``k dC_on`` and ``n dC_on - k dC_off``, zero on
-    average). Passes whose start was not seen (cut by the start of the stream) are anchored
-    at their end instead: the last OFF event lies in ``(L0, L0 + C_off]``, taken as
-    ``L0 + C / 2``; passes cut at both ends get NaN (the fit leaves them out).
+    Every event moves the pixel's reference level by ``C`` (up for ON, down for OFF) and
+    fires when the log intensity crosses the new reference, so the crossing's level is the
+    pixel's polarity sum up to that event (`PixelPasses.net`) times ``C``, counted from the
+    pixel's level at the start of the stream. A star passing a resting pixel gives ON
+    events at ``L0 + k C`` (``k = 1..n``) and OFF events at ``L0 + (n - k) C``; a slow slew
+    whose jitter makes the intensity go up and down gives the right levels too (no pass
+    structure assumed). Nominal ``C`` for ``C_on`` and ``C_off``: the mismatch makes a level
+    wrong by ``k dC``, zero on average. Pixels whose first run was cut by the start of the
+    stream (not at rest then) are anchored at their last event instead: after a passing
+    star the reference rests in ``(L0, L0 + C_off]``, taken as ``L0 + C / 2``; if their last
+    run is also open-ended there is no anchor: NaN (the fit leaves them out).
     """
-    on = np.asarray(p) == 1
-    pos, L, part = passes.pos, passes.run_len, passes.partner_len
-    lvl = np.where(on, pos + 1.0, part - pos - 1.0)
-    # Anchored at the end: OFF runs without an ON partner, and passes cut by the start.
-    off_alone = ~on & (part == 0)
-    lvl = np.where(off_alone, L - pos - 0.5, lvl)
-    early_on = passes.cut_start & on & (part > 0)
-    lvl = np.where(early_on, part + 0.5 - (L - 1 - pos), lvl)
-    early_off = passes.cut_start & ~on & (part > 0)
-    lvl = np.where(early_off, L - pos - 0.5, lvl)
-    # Neither end seen at rest (at slow slews passes outlast a short recording): no anchor.
-    return np.where(passes.cut_start & passes.open_end, np.nan, lvl)
+    del p  # the polarity is in the sums
+    lvl = passes.net.astype(float)
+    lvl = np.where(passes.pixel_cut_start, lvl - passes.net_last + 0.5, lvl)
+    return np.where(passes.pixel_cut_start & passes.pixel_open_end, np.nan, lvl)
 
 
 def _pixel_psf(u: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:

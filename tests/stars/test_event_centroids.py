@@ -38,6 +38,13 @@ def test_matched_ladder_events_keep_level_pairs() -> None:
     levels = ladder_levels(p, pixel_passes(t, x, y, p, edge_s=0.0))
     np.testing.assert_array_equal(levels[:9], [1, 2, 3, 4, 3, 2, 1, 0, -1])
     np.testing.assert_array_equal(levels[11:], [1, 2, 3, 2])
+    # An intensity going up and down (slow slew with jitter): the running polarity sum.
+    p2 = np.array([1, 1, 0, 1, 0, 0], np.uint8)
+    z = np.zeros(6, np.uint16)
+    t2 = np.arange(6) * 1e-3
+    np.testing.assert_array_equal(
+        ladder_levels(p2, pixel_passes(t2, z, z, p2, edge_s=0.0)), [1, 2, 1, 2, 1, 0]
+    )
 
 
 CAM = star_camera(96, 64, 3.0)  # 1833 px/rad, about the 640 px 20 deg sensor's scale
