@@ -59,6 +59,8 @@ class RingsPose:
         center_spread_m: largest distance between a ring's centre and the mean centre.
         reason: why there is no pose ("" when found).
         choice: index of the circular section taken for each ring (0 or 1), () if none.
+        ambiguity: cost of this solution over that of the best one with a normal more than
+            10 deg away (0 = none such; near 1 = the mirror tilt fits about as well).
     """
 
     center_m: np.ndarray | None
@@ -67,19 +69,35 @@ class RingsPose:
     center_spread_m: float = math.nan
     reason: str = ""
     choice: tuple[int, ...] = ()
+    ambiguity: float = math.nan
 
 
-def rings_pose(K: np.ndarray, conics: Sequence[np.ndarray], radii_m: Sequence[float]) -> RingsPose:
+def rings_pose(
+    K: np.ndarray,
+    conics: Sequence[np.ndarray],
+    radii_m: Sequence[float],
+    prior_normal: np.ndarray | None = None,
+    max_prior_deg: float = 20.0,
+) -> RingsPose:
     """Centre and normal of a concentric-ring target from its rings' image conics.
+
+    Small rings far away are seen almost in weak perspective, where the false circular
+    sections of all rings nearly agree too (the mirror tilt): ``ambiguity`` (the best cost
+    over the best cost of a solution whose normal differs by more than 10 deg) near 1 says
+    so. A ``prior_normal`` (the nominal mounting) settles it: only solutions within
+    ``max_prior_deg`` of it are considered.
 
     Args:
         K: 3x3 intrinsics of the undistorted image.
         conics: one 3x3 image conic per ring (any scale and sign).
         radii_m: the rings' known radii [m], same order.
+        prior_normal: expected unit normal (toward the camera), or None.
+        max_prior_deg: see ``prior_normal``.
 
     Returns:
         A `RingsPose`; ``center_m`` is None with a ``reason`` when fewer than two rings are
-        given or a conic is not an ellipse in front of the camera.
+        given, a conic is not an ellipse in front of the camera, or no solution lies near
+        the prior.
     """
     if len(conics) != len(radii_m):
         return RingsPose(None, None, reason=f"{len(conics)} conics for {len(radii_m)} radii")
@@ -94,17 +112,32 @@ def rings_pose(K: np.ndarray, conics: Sequence[np.ndarray], radii_m: Sequence[fl
             per_ring.append(_sections(K, Cm, float(r)))
         except SatposeError as exc:
             return RingsPose(None, None, reason=f"ring {i}: {exc}")
-    best: tuple[float, np.ndarray, np.ndarray, float, float, tuple[int, ...]] | None = None
     scale = float(np.mean([np.linalg.norm(c[0][1]) for c in per_ring]))
+    sols = []
     for idx in itertools.product(*(range(len(c)) for c in per_ring)):
         choice = [per_ring[i][k] for i, k in enumerate(idx)]
         c_mean, n_mean, ang, spread = _combine(choice)
-        cost = math.radians(ang) + spread / scale
-        if best is None or cost < best[0]:
-            best = (cost, c_mean, n_mean, ang, spread, tuple(idx))
-    assert best is not None
-    _, c_mean, n_mean, ang, spread, idx_best = best
-    return RingsPose(c_mean, n_mean, normal_spread_deg=ang, center_spread_m=spread, choice=idx_best)
+        if prior_normal is not None and _deg(n_mean, prior_normal) > max_prior_deg:
+            continue
+        sols.append((math.radians(ang) + spread / scale, c_mean, n_mean, ang, spread, idx))
+    if not sols:
+        return RingsPose(None, None, reason=f"no solution within {max_prior_deg} deg of the prior")
+    sols.sort(key=lambda x: x[0])
+    cost, c_mean, n_mean, ang, spread, idx_best = sols[0]
+    others = [x[0] for x in sols[1:] if _deg(x[2], n_mean) > 10.0]
+    ambiguity = cost / others[0] if others and others[0] > 0 else 0.0
+    return RingsPose(
+        c_mean,
+        n_mean,
+        normal_spread_deg=ang,
+        center_spread_m=spread,
+        choice=tuple(idx_best),
+        ambiguity=ambiguity,
+    )
+
+
+def _deg(a: np.ndarray, b: np.ndarray) -> float:
+    return math.degrees(math.acos(float(np.clip(a @ b, -1.0, 1.0))))
 
 
 def _sections(K: np.ndarray, C: np.ndarray, r: float) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -330,6 +363,7 @@ def _associate(
     members: list[DetectedEllipse],
     radii: np.ndarray,
     cfg: RingsDetectorConfig,
+    prior_normal: np.ndarray | None,
 ) -> tuple[list[int], list[int], int] | None:
     """Best monotone association of ``members`` (sorted by size) with edge indices: returns
     (member indices, edge indices, band polarity) or None. Edge ``2k`` is band ``k``'s inner
@@ -351,7 +385,9 @@ def _associate(
                 signs = {int(x) for x in np.sign(p * role) if x != 0}
                 if len(signs) > 1:
                     continue
-                pose = rings_pose(K, [conics[i] for i in mi], radii[list(ei)].tolist())
+                pose = rings_pose(
+                    K, [conics[i] for i in mi], radii[list(ei)].tolist(), prior_normal
+                )
                 if pose.center_m is None:
                     continue
                 rel = pose.center_spread_m / float(np.linalg.norm(pose.center_m))
@@ -365,6 +401,15 @@ def _associate(
         if best is not None:
             return best[1], best[2], best[3]
     return None
+
+
+def _plane_pose(center: np.ndarray, normal: np.ndarray) -> Rigid3:
+    """A pose of the rings' plane (z = ``normal``; the rotation about the axis is arbitrary:
+    an image conic needs only the plane)."""
+    z = normal / np.linalg.norm(normal)
+    x = np.cross([0.0, 1.0, 0.0], z) if abs(z[1]) < 0.9 else np.cross([1.0, 0.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    return Rigid3(R=np.c_[x, np.cross(z, x), z], t=np.asarray(center, float))
 
 
 def _refine_on_edges(
@@ -404,6 +449,7 @@ def detect_rings(
     edge_radii_m: Sequence[float],
     config: RingsDetectorConfig | None = None,
     roi: tuple[int, int, int, int] | None = None,
+    prior_normal: np.ndarray | None = None,
 ) -> RingsDetection:
     """Find the concentric-ring target in an undistorted image and estimate its centre and
     normal in the camera frame.
@@ -415,6 +461,8 @@ def detect_rings(
             each painted band in turn (`satpose.datasets.servicer_rings`).
         roi: search window ``(x0, y0, x1, y1)`` (e.g. `rings_roi` at the nominal pose), or
             None for the whole image.
+        prior_normal: the nominal normal (unit, camera frame): settles the two-fold
+            ambiguity of small rings (`rings_pose`); None: the best-agreeing solution.
 
     Returns:
         A `RingsDetection`; without a pose its ``reason`` says why (dark image, no
@@ -439,7 +487,7 @@ def detect_rings(
     for fam in fams[:4]:
         top = sorted(fam, key=lambda i: -cands[i].support)[: cfg.max_members]
         members = sorted((cands[i] for i in top), key=lambda d: _size(d.ellipse))
-        assoc = _associate(K, members, radii, cfg)
+        assoc = _associate(K, members, radii, cfg, prior_normal)
         if assoc is None:
             continue
         mi, ei, sign = assoc
@@ -457,10 +505,36 @@ def detect_rings(
         if len(ells) < 2:
             reason = f"only {len(ells)} ring edge(s) survived the sub-pixel refinement"
             continue
-        pose = rings_pose(K, [e.conic() for e in ells], rads)
-        if pose.center_m is None:
+        pose = rings_pose(K, [e.conic() for e in ells], rads, prior_normal)
+        if pose.center_m is None or pose.normal is None:
             reason = pose.reason
             continue
+        if sign != 0 and len(ells) < len(radii):
+            # Edges the detector missed (small, faint, partly hidden): predicted from the
+            # pose, refined on sub-pixel edges of their polarity like the others.
+            plane = _plane_pose(pose.center_m, pose.normal)
+            for j in sorted(
+                set(range(len(radii))) - {int(np.argmin(np.abs(radii - r))) for r in rads}
+            ):
+                try:
+                    guess = conic_to_ellipse(circle_to_conic(K, plane, float(radii[j])))
+                except ConicError:
+                    continue
+                if guess.b < cfg.min_axis_px:
+                    continue
+                ref = _refine_on_edges(image_s, guess, sign * (1 if j % 2 == 0 else -1), cfg)
+                if ref is not None:
+                    ells.append(ref[0])
+                    covs.append(ref[1])
+                    rads.append(float(radii[j]))
+            order = np.argsort(rads)
+            ells = [ells[i] for i in order]
+            covs = [covs[i] for i in order]
+            rads = [rads[i] for i in order]
+            pose = rings_pose(K, [e.conic() for e in ells], rads, prior_normal)
+            if pose.center_m is None:
+                reason = pose.reason
+                continue
         centre, normal, cov_c, cov_n = weighted_rings_pose(K, ells, covs, rads, pose)
         pose = replace(pose, center_m=centre, normal=normal)
         return RingsDetection(

@@ -21,9 +21,10 @@ target about its own axis is not observable.
 DIR (written to a temporary folder, then renamed):
 
 - ``rings.csv``: per frame the status and reason, the centre [m] and unit normal (camera
-  frame), the rings' spreads, the propagated sigmas, the number of ring edges used, and (with
-  a nominal pose) the centre error [mm] and normal error [deg] against it, (with truth)
-  against the rendered pose;
+  frame), the rings' spreads, the mirror-tilt ambiguity (`satpose.frontend.rings.rings_pose`;
+  the nominal normal, when known, settles it), the propagated sigmas, the number of ring
+  edges used, and (with a nominal pose) the centre error [mm] and normal error [deg] against
+  it, (with truth) against the rendered pose;
 - ``summary.json``: the check's numbers and verdict (also printed on one line);
 - ``overlay/NNNNNN.png``: every ``--overlay-every``-th frame with the detected edges (green)
   and the nominal ones (red).
@@ -53,7 +54,7 @@ from satpose.frontend.rings import RingsDetection, RingsDetectorConfig, detect_r
 
 COLUMNS = (
     "frame t_s status reason n_edges cx_m cy_m cz_m nx ny nz center_spread_mm "
-    "normal_spread_deg sigma_center_mm sigma_normal_deg center_err_mm normal_err_deg "
+    "normal_spread_deg ambiguity sigma_center_mm sigma_normal_deg center_err_mm normal_err_deg "
     "truth_center_err_mm truth_normal_err_deg"
 ).split()
 
@@ -228,6 +229,7 @@ def run_rings(
     roi = None
     if info.nominal is not None:
         roi = rings_roi(K, info.nominal, float(info.edge_radii_m[-1]), (cam.height, cam.width), cfg)
+    prior = info.nominal.R[:, 2] if info.nominal is not None else None
     stage = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
     (stage / "overlay").mkdir(parents=True)
     try:
@@ -235,7 +237,7 @@ def run_rings(
         centres, normals, sig_c, sig_n = [], [], [], []
         for k, fr in enumerate(seq.frames):
             prep = und(fr.left())
-            det = detect_rings(prep, K, info.edge_radii_m, cfg, roi)
+            det = detect_rings(prep, K, info.edge_radii_m, cfg, roi, prior)
             p = det.pose
             if p.center_m is not None and p.normal is not None:
                 centres.append(p.center_m)
@@ -255,6 +257,7 @@ def run_rings(
                     *pose_cols,
                     p.center_spread_m * 1e3,
                     p.normal_spread_deg,
+                    p.ambiguity,
                     det.sigma_center_m * 1e3,
                     det.sigma_normal_deg,
                     *_errors(det, info.nominal),
