@@ -169,21 +169,9 @@ def from_yaml(raw: Any, path: Any) -> RingsTargetInfo:
 
 
 def _mesh(mi: ModuleType, name: str, verts: np.ndarray, faces: np.ndarray, bsdf: Any) -> Any:
-    props = mi.Properties()
-    props["bsdf"] = mi.load_dict(bsdf)
-    mesh = mi.Mesh(
-        name,
-        vertex_count=verts.shape[0],
-        face_count=faces.shape[0],
-        props=props,
-        has_vertex_normals=False,
-        has_vertex_texcoords=False,
-    )
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(verts.astype(np.float32).ravel())
-    params["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
-    params.update()
-    return mesh
+    from satpose.datasets.scene import triangle_mesh  # mitsuba-side module, imported lazily
+
+    return triangle_mesh(mi, name, verts, faces, {"bsdf": bsdf})
 
 
 def _annulus(r_in: float, r_out: float, segments: int) -> tuple[np.ndarray, np.ndarray]:
