@@ -3,7 +3,11 @@
 - Spots from events: the events of a time window are counted per pixel, 3x3-summed and
   thresholded; each connected blob is a star. Its position is the mean of the ON-event mean
   and the OFF-event mean (a moving star fires ON events on its leading edge and OFF events on
-  its trailing edge, so the two means straddle the star) at the mean of their times.
+  its trailing edge, so the two means straddle the star) at the mean of their times. In
+  tracking this balanced centroid starts a moving-spot fit (`fit_moving_spots`) of every
+  event as a threshold-level crossing (`pixel_passes`, `ladder_levels`), which removes the
+  centroid's along-track lag under threshold mismatch and its blindness to sub-pixel
+  cross-track motion at slow slews (docs/stars.md).
 - Spots from frames: background (median) and noise (MAD) per image, threshold, connected
   blobs, intensity-weighted centroid.
 - Identification (lost in space): tetra3rs' geometric-hashing plate solver on a multi-scale
@@ -17,7 +21,8 @@
   infinity (no translation: E = [t]x R = 0).
 - Tracking: catalogue stars projected with the attitude predicted from the last attitude and
   rate; events within a gate of each prediction are that star's (no image, no blobs, no plate
-  solve), then Wahba. Falls back to lost-in-space when fewer than ``min_stars`` remain.
+  solve), balanced centroid, spot fit, then Wahba with per-star weights. Falls back to
+  lost-in-space when fewer than ``min_stars`` remain.
 
 Camera frame OpenCV; attitude ``inertial_from_camera`` (ICRS). Never imports gtsam.
 """
@@ -27,11 +32,12 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import cv2
 import numpy as np
+from scipy.special import ndtr
 
 from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.errors import SatposeError
@@ -152,6 +158,254 @@ def peak_on_events(x: np.ndarray, y: np.ndarray, p: np.ndarray) -> np.ndarray:
     peak = np.zeros(order.size, dtype=bool)
     peak[order] = peak_sorted
     return peak
+
+
+@dataclass(frozen=True)
+class PixelPasses:
+    """Each event's place in its pixel's passes (arrays in the events' order).
+
+    A star passing a pixel makes it fire a run of ON events and then a run of OFF events; a
+    run is a maximal sequence of one polarity at one pixel.
+
+    Attributes:
+        pos: index of the event within its run (0 = first).
+        run_len: length of its run.
+        partner_len: length of the partner run (the OFF run after an ON run, the ON run
+            before an OFF run), 0 if there is none.
+        cut_start: the run is its pixel's first and starts within ``edge_s`` of the stream's
+            first event, or it is the OFF run of such an ON run (the pass may have begun
+            before the recording, above the resting level).
+        cut_end: the run is its pixel's last, is ON and ends within ``edge_s`` of the
+            stream's last event (the pass may not be over).
+        edge_s: the edge length used.
+    """
+
+    pos: np.ndarray
+    run_len: np.ndarray
+    partner_len: np.ndarray
+    cut_start: np.ndarray
+    cut_end: np.ndarray
+    edge_s: float
+
+
+def pixel_passes(
+    t_s: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray, edge_s: float | None = None
+) -> PixelPasses:
+    """The pass structure of a time-sorted event stream (`PixelPasses`).
+
+    ``edge_s`` defaults to half the 95th percentile of the complete passes' durations (first
+    ON to last OFF event): about one rise or fall; 0 treats no run as cut.
+    """
+    # Stable sort by pixel (radix sorts of the 16-bit coordinates): time order kept within it.
+    order = np.lexsort((np.asarray(x), np.asarray(y)))
+    n_ev = order.size
+    if n_ev == 0:
+        z = np.zeros(0, dtype=np.int32)
+        return PixelPasses(z, z, z, z.astype(bool), z.astype(bool), 0.0)
+    ps = np.asarray(y)[order].astype(np.int32) * 65536 + np.asarray(x)[order]
+    pp = np.asarray(p)[order]
+    t = np.asarray(t_s, float)
+    new_run = np.ones(n_ev, dtype=bool)
+    new_run[1:] = (ps[1:] != ps[:-1]) | (pp[1:] != pp[:-1])
+    starts = np.flatnonzero(new_run).astype(np.int32)
+    ends = np.append(starts[1:], n_ev) - 1
+    length = ends - starts + 1
+    run_pix, run_pol = ps[starts], pp[starts].astype(np.int8)
+    t_start, t_end = t[order[starts]], t[order[ends]]
+    n_runs = starts.size
+    on_then_off = np.zeros(n_runs, dtype=bool)  # run k is ON and run k + 1 its OFF run
+    on_then_off[:-1] = (run_pix[1:] == run_pix[:-1]) & (run_pol[:-1] == 1) & (run_pol[1:] == 0)
+    partner = np.zeros(n_runs, dtype=np.int32)
+    partner[:-1] = np.where(on_then_off[:-1], length[1:], 0)
+    partner[1:] += np.where(on_then_off[:-1], length[:-1], 0)
+    if edge_s is None:
+        k = np.flatnonzero(on_then_off)
+        dur = t_end[k + 1] - t_start[k]
+        edge_s = 0.5 * float(np.percentile(dur, 95)) if dur.size else 0.0
+    first_of_pix = np.ones(n_runs, dtype=bool)
+    first_of_pix[1:] = run_pix[1:] != run_pix[:-1]
+    last_of_pix = np.ones(n_runs, dtype=bool)
+    last_of_pix[:-1] = run_pix[:-1] != run_pix[1:]
+    early = first_of_pix & (t_start < float(t.min()) + edge_s)
+    cut_start = early.copy()
+    cut_start[1:] |= on_then_off[:-1] & early[:-1]
+    cut_end = (run_pol == 1) & last_of_pix & (t_end > float(t.max()) - edge_s)
+    # Back to the events' order: each event's run and its index in the sorted order.
+    run_sorted = np.cumsum(new_run, dtype=np.int32) - 1
+    rank = np.empty(n_ev, dtype=np.int32)
+    rank[order] = np.arange(n_ev, dtype=np.int32)
+    run = run_sorted[rank]
+    return PixelPasses(
+        pos=rank - starts[run],
+        run_len=length[run],
+        partner_len=partner[run],
+        cut_start=cut_start[run],
+        cut_end=cut_end[run],
+        edge_s=float(edge_s),
+    )
+
+
+def matched_ladder_events(
+    t_s: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    p: np.ndarray,
+    edge_s: float | None = None,
+    passes: PixelPasses | None = None,
+) -> np.ndarray:
+    """Mask of the events that form level-matched ON/OFF pairs within each pixel's passes.
+
+    A star passing a pixel makes it fire a run of ON events (levels ``L0 + k C_on``,
+    ``k = 1..n``) and then a run of OFF events (``L0 + n C_on - k C_off``, ``k = 1..m``, the
+    last one anywhere in ``(L0, L0 + C_off]``). The ``k``-th OFF event and the ``(n - k)``-th
+    ON event cross levels that differ by ``k (C_on - C_off)``: zero without threshold
+    mismatch and of zero mean with it (``C_on``, ``C_off`` are independent per pixel). Keeping
+    for every pass only the ``K = min(n - 1, m)`` pairs ``(ON_{n-k}, OFF_k)``, ``k = 1..K``,
+    leaves ON and OFF sets that mirror each other in level, so their centroids straddle the
+    star symmetrically in expectation. What this drops: the top ON event (no OFF mirror),
+    the lowest OFF events when the OFF ladder is longer (it ends up to ``C_off`` lower than
+    the ON ladder starts: the along-track lag of `peak_on_events` alone) or the lowest ON
+    events when it is shorter, and isolated noise events (a pass with one polarity only).
+
+    The events must be time sorted. The decision needs the pixel's whole pass (about 0.2 s
+    at 1 deg/s): this runs on the whole stream (`run_event_tracker`); an online system would
+    have that latency. Runs cut by the ends of the stream (`pixel_passes`) have no partner
+    to match: the OFF runs of passes cut by the start are kept whole, the ON runs of passes
+    cut by either end without their top event if it is followed by an OFF event, else whole
+    (`peak_on_events`' behaviour there, for about one rise or fall).
+    """
+    ps = passes if passes is not None else pixel_passes(t_s, x, y, p, edge_s)
+    on = np.asarray(p) == 1
+    pos, L = ps.pos, ps.run_len
+    K = np.where(on, np.minimum(L - 1, ps.partner_len), np.minimum(ps.partner_len - 1, L))
+    K = np.maximum(K, 0)
+    keep = np.where(on, (pos <= L - 2) & (pos >= L - 1 - K), pos < K)
+    has_off = ps.partner_len > 0
+    keep |= ps.cut_start & ~on
+    keep |= ps.cut_start & on & ((pos <= L - 2) | ~has_off)
+    keep |= ps.cut_end
+    return keep
+
+
+def ladder_levels(p: np.ndarray, passes: PixelPasses) -> np.ndarray:
+    """Each event's threshold level above its pixel's resting level, in thresholds ``C``.
+
+    In a pass of ``n`` ON and ``m`` OFF events, the ``k``-th ON event crosses ``L0 + k C``
+    and the ``k``-th OFF event ``L0 + (n - k) C`` (nominal ``C`` for ``C_on`` and ``C_off``:
+    the mismatch makes these levels wrong by ``k dC_on`` and ``n dC_on - k dC_off``, zero on
+    average). Passes whose start was not seen (cut by the start of the stream) are anchored
+    at their end instead: the last OFF event lies in ``(L0, L0 + C_off]``, taken as
+    ``L0 + C / 2``.
+    """
+    on = np.asarray(p) == 1
+    pos, L, part = passes.pos, passes.run_len, passes.partner_len
+    lvl = np.where(on, pos + 1.0, part - pos - 1.0)
+    # Anchored at the end: OFF runs without an ON partner, and passes cut by the start.
+    off_alone = ~on & (part == 0)
+    lvl = np.where(off_alone, L - pos - 0.5, lvl)
+    early_on = passes.cut_start & on & (part > 0)
+    lvl = np.where(early_on, part + 0.5 - (L - 1 - pos), lvl)
+    early_off = passes.cut_start & ~on & (part > 0)
+    lvl = np.where(early_off, L - pos - 0.5, lvl)
+    return lvl
+
+
+def _pixel_psf(u: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Fraction of a unit Gaussian (sigma) centred at 0 falling on the pixel ``[u - 1/2,
+    u + 1/2]`` and its derivative with respect to the Gaussian's centre."""
+    a, b = (u + 0.5) / sigma, (u - 0.5) / sigma
+    g = ndtr(a) - ndtr(b)
+    dg = -(np.exp(-0.5 * a * a) - np.exp(-0.5 * b * b)) / (sigma * math.sqrt(2 * math.pi))
+    return g, dg
+
+
+@dataclass(frozen=True)
+class SpotFit:
+    """Moving-spot fit of each star (index ``0..S-1``).
+
+    Attributes:
+        px: position at the reference time, (S, 2).
+        log_flux: ``log(F / background)`` of the whole star, (S,).
+        cov: 2x2 covariance of ``px`` [px^2], (S, 2, 2): the inverse normal matrix scaled
+            by the reduced chi-square of all the stars' residuals together.
+        n: events used, (S,).
+        ok: converged with enough events, (S,).
+    """
+
+    px: np.ndarray
+    log_flux: np.ndarray
+    cov: np.ndarray
+    n: np.ndarray
+    ok: np.ndarray
+
+
+def fit_moving_spots(
+    lab: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    dt: np.ndarray,
+    level: np.ndarray,
+    px0: np.ndarray,
+    vel: np.ndarray,
+    log_flux0: np.ndarray,
+    psf_sigma_px: float,
+    level_sigma: np.ndarray,
+    iterations: int = 3,
+) -> SpotFit:
+    """Fit moving Gaussian spots to events as level crossings (Gauss-Newton, all stars at once).
+
+    Each event of star ``s`` at pixel ``(x, y)`` and time ``dt`` (relative to the reference
+    time) says that the pixel's log intensity above its resting level,
+    ``log(1 + F_s G(x - X_s(dt), y - Y_s(dt)))`` with the pixel-integrated PSF ``G`` and
+    ``X_s(dt) = px_s + vel_s dt``, equals its threshold level ``level`` (in log units). The
+    unknowns per star are the position and ``log F_s`` (relative to the background); the
+    velocity comes from the predicted rate. Residuals are weighted by ``1 / level_sigma``
+    with a Huber loss (noise events). Unlike a centroid of counts, this uses where every
+    level was crossed, so a sub-pixel cross-track shift moves the crossing times even when
+    it changes no pixel's event count.
+    """
+    S = px0.shape[0]
+    state = np.column_stack([px0, log_flux0]).astype(float)
+    w0 = 1.0 / np.asarray(level_sigma, float) ** 2
+    cnt = np.bincount(lab, minlength=S)
+    H = np.zeros((S, 3, 3))
+    for _ in range(iterations):
+        cx = state[lab, 0] + vel[lab, 0] * dt
+        cy = state[lab, 1] + vel[lab, 1] * dt
+        gx, dgx = _pixel_psf(x - cx, psf_sigma_px)
+        gy, dgy = _pixel_psf(y - cy, psf_sigma_px)
+        F = np.exp(state[lab, 2])
+        G = gx * gy
+        den = 1.0 + F * G
+        r = np.log(den) - level
+        # d r / d centre: d/dcx gx(x - cx) = -gx'(x - cx) = dgx as defined (centre derivative).
+        J = np.column_stack([F * dgx * gy / den, F * gx * dgy / den, F * G / den])
+        rs = np.abs(r) * np.sqrt(w0)
+        w = w0 * np.where(rs > 2.0, 2.0 / np.maximum(rs, 1e-12), 1.0)  # Huber at 2 sigma
+        g = np.zeros((S, 3))
+        for i in range(3):
+            g[:, i] = np.bincount(lab, weights=w * J[:, i] * r, minlength=S)
+            for j in range(i, 3):
+                H[:, i, j] = H[:, j, i] = np.bincount(
+                    lab, weights=w * J[:, i] * J[:, j], minlength=S
+                )
+        Hd = H + 1e-9 * np.eye(3)
+        step = -np.linalg.solve(Hd, g[:, :, None])[:, :, 0]
+        step[:, :2] = np.clip(step[:, :2], -0.5, 0.5)
+        step[:, 2] = np.clip(step[:, 2], -1.0, 1.0)
+        state += np.where((cnt >= 4)[:, None], step, 0.0)
+    ok = (cnt >= 4) & np.all(np.isfinite(state), axis=1)
+    ok &= np.all(np.abs(state[:, :2] - px0) < 1.5, axis=1)
+    # Residuals at the solution: one chi-square scale for the window (per star it would rest
+    # on a handful of events).
+    gx, _ = _pixel_psf(x - state[lab, 0] - vel[lab, 0] * dt, psf_sigma_px)
+    gy, _ = _pixel_psf(y - state[lab, 1] - vel[lab, 1] * dt, psf_sigma_px)
+    r = np.log1p(np.exp(state[lab, 2]) * gx * gy) - level
+    used = ok[lab]
+    dof = int(used.sum()) - 3 * int(ok.sum())
+    chi2 = float(np.sum((w * r * r)[used])) / dof if dof > 0 else 1.0
+    cov_full = np.linalg.inv(H + 1e-9 * np.eye(3)) * chi2
+    return SpotFit(state[:, :2], state[:, 2], cov_full[:, :2, :2], cnt, ok)
 
 
 def _balanced_centroids(
@@ -291,8 +545,21 @@ class StarTrackerConfig:
         rate_history: windows over which the rate for the prediction is differenced.
         min_motion_px: star motion the events of one tracking output must span (slow slews
             integrate longer than ``window_s``; outputs stay ``window_s`` apart).
-        drop_peak_on: leave each pixel's top-level ON event out (`peak_on_events`; needs the
-            pixel's next event, so it is decided on the whole stream).
+        event_selection: which events the balanced centroid uses, decided on the whole
+            stream: ``matched`` (`matched_ladder_events`: level-matched ON/OFF pairs per
+            pixel pass), ``drop_peak`` (`peak_on_events` left out) or ``all``.
+        centroid: star position in tracking: ``spot_fit`` (`fit_moving_spots` on every
+            event's threshold level, started from the balanced centroid) or ``balanced``.
+        contrast_threshold, threshold_sigma, psf_sigma_px: the event sensor's nominal
+            calibration (mean threshold C, its pixel-to-pixel spread, Gaussian PSF sigma) the
+            spot fit assumes.
+        fit_sigma_floor_px: added in quadrature to each spot fit's own position sigma
+            (model errors the fit's residuals do not show).
+        fit_max_events: most events per star the spot fit uses (evenly thinned beyond).
+        fit_max_stars: most stars the spot fit (and then Wahba) uses: those with the most
+            events.
+        scale_by_residuals: multiply each Wahba covariance by the reduced chi-square of its
+            residuals when that exceeds 1.
         mag_limit: faintest catalogue star predicted in tracking.
         epoch_yr: epoch of the solver catalogue.
     """
@@ -305,8 +572,16 @@ class StarTrackerConfig:
     centroid_sigma_px: float = 0.35
     outlier_sigma: float = 5.0
     rate_history: int = 20
-    min_motion_px: float = 0.3
-    drop_peak_on: bool = True
+    min_motion_px: float = 0.15
+    event_selection: Literal["matched", "drop_peak", "all"] = "matched"
+    centroid: Literal["spot_fit", "balanced"] = "spot_fit"
+    contrast_threshold: float = 0.25
+    threshold_sigma: float = 0.03
+    psf_sigma_px: float = 0.8
+    fit_sigma_floor_px: float = 0.05
+    fit_max_events: int = 24
+    fit_max_stars: int = 40
+    scale_by_residuals: bool = True
     mag_limit: float = 7.5
     epoch_yr: float = 2026.9
 
@@ -315,6 +590,14 @@ class StarTrackerConfig:
             raise StarTrackerError("need 0 < window_s <= lis_window_s")
         if self.min_stars < 3 or self.gate_px <= 0 or self.centroid_sigma_px <= 0:
             raise StarTrackerError("min_stars >= 3, gate_px > 0, centroid_sigma_px > 0")
+        if self.event_selection not in ("matched", "drop_peak", "all"):
+            raise StarTrackerError(f"unknown event_selection {self.event_selection!r}")
+        if self.centroid not in ("spot_fit", "balanced"):
+            raise StarTrackerError(f"unknown centroid {self.centroid!r}")
+        if not (self.contrast_threshold > 0 and self.threshold_sigma >= 0):
+            raise StarTrackerError("contrast_threshold > 0 and threshold_sigma >= 0 needed")
+        if not self.psf_sigma_px > 0:
+            raise StarTrackerError("psf_sigma_px must be positive")
 
 
 @dataclass(frozen=True)
@@ -329,6 +612,10 @@ class AttitudeSolution:
         star_ids: catalogue ids of the stars used, (M,).
         b_cam: their bearings (M, 3).
         cpu_ms: processing CPU time of this output [ms].
+        span_s: time span of the data behind it (event tracking: the integration span,
+            which can be longer than the output period; frames: 0).
+        stream_cpu_ms: this output's even share of the CPU time of the whole-stream event
+            analysis (`run_event_tracker`: pass structure, levels, selection) [ms].
     """
 
     t_s: float
@@ -338,6 +625,8 @@ class AttitudeSolution:
     star_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     b_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     cpu_ms: float = 0.0
+    span_s: float = 0.0
+    stream_cpu_ms: float = 0.0
 
 
 class StarTracker:
@@ -366,20 +655,34 @@ class StarTracker:
     # ---- building blocks ------------------------------------------------------------------
 
     def _solve(
-        self, t_s: float, b: np.ndarray, ids: np.ndarray, status: Status
+        self,
+        t_s: float,
+        b: np.ndarray,
+        ids: np.ndarray,
+        status: Status,
+        sigma_rad: np.ndarray | None = None,
     ) -> AttitudeSolution:
+        """Wahba on bearings ``b`` of catalogue stars ``ids`` (per-star noise ``sigma_rad``,
+        default ``centroid_sigma_px``), one pass of outlier removal."""
         c = self.config
         if ids.size < c.min_stars:
             return AttitudeSolution(t_s, None, None, "lost")
+        sig = np.broadcast_to(self.sigma_rad if sigma_rad is None else sigma_rad, ids.shape)
         r = self.cat.unit[[self.cat.row_of[int(i)] for i in ids]]
-        R, cov = wahba(b, r, self.sigma_rad)
+        R, cov = wahba(b, r, sig)
         res = np.linalg.norm(np.cross(r, b @ R.T), axis=1)
-        ok = res < c.outlier_sigma * self.sigma_rad * math.sqrt(2)
+        ok = res < c.outlier_sigma * sig * math.sqrt(2)
         if ok.sum() < c.min_stars:
             return AttitudeSolution(t_s, None, None, "lost")
         if not ok.all():
-            b, r, ids = b[ok], r[ok], ids[ok]
-            R, cov = wahba(b, r, self.sigma_rad)
+            b, r, ids, sig = b[ok], r[ok], ids[ok], sig[ok]
+            R, cov = wahba(b, r, sig)
+        if c.scale_by_residuals:
+            # Residuals larger than the assumed noise (2 DOF per star, 3 fitted) widen the
+            # covariance; smaller ones never shrink it.
+            res = np.linalg.norm(np.cross(r, b @ R.T), axis=1)
+            chi2 = float(np.sum((res / sig) ** 2)) / max(2 * ids.size - 3, 1)
+            cov = cov * max(1.0, chi2)
         return AttitudeSolution(t_s, R, cov, status, ids, b)
 
     def identify(self, spots: Spots, t_s: float) -> AttitudeSolution:
@@ -477,14 +780,23 @@ class StarTracker:
     # ---- events ---------------------------------------------------------------------------
 
     def track_events(
-        self, events: Events, t0_s: float, t1_s: float, span_s: float | None = None
+        self,
+        events: Events,
+        t0_s: float,
+        t1_s: float,
+        span_s: float | None = None,
+        levels: np.ndarray | None = None,
+        selected: np.ndarray | None = None,
     ) -> AttitudeSolution:
         """Event tracker step: an attitude at the centre of ``[t0_s, t1_s)`` from ``events``
         (already sliced; they may start earlier, ``span_s`` before ``t1_s``).
 
         Tracking: stamp each predicted star's gate into a label image, look every event up in
         it, balanced ON/OFF centroid per star, moved to the window centre with the predicted
-        image motion, Wahba. Lost (or too few stars): lost-in-space on the window's blobs.
+        image motion; with ``levels`` (each event's `ladder_levels`, aligned with
+        ``events``) and ``centroid="spot_fit"`` refined by `fit_moving_spots`; Wahba. Lost
+        (or too few stars): lost-in-space on the window's blobs. ``selected`` (aligned with
+        ``events``) marks the events the balanced centroids and blobs use (all if None).
         """
         start = time.process_time()
         c = self.config
@@ -492,15 +804,24 @@ class StarTracker:
         R_pred = self.predict(t_mid)
         sol = AttitudeSolution(t_mid, None, None, "lost")
         if R_pred is not None and len(events):
-            sol = self._track_gated(events, t_mid, R_pred, span_s or (t1_s - t0_s))
-        if sol.R is None:
-            sol = self.identify(
-                event_spots(events, self.cam.width, self.cam.height, 2 * c.min_events), t_mid
+            sol = self._track_gated(
+                events, t_mid, R_pred, span_s or (t1_s - t0_s), levels, selected
             )
-        return self._accept(_with_cpu(sol, start))
+        if sol.R is None:
+            blobs = events if selected is None else _subset(events, selected)
+            sol = self.identify(
+                event_spots(blobs, self.cam.width, self.cam.height, 2 * c.min_events), t_mid
+            )
+        return self._accept(_with_cpu(sol, start, span_s or (t1_s - t0_s)))
 
     def _track_gated(
-        self, events: Events, t_mid: float, R_pred: np.ndarray, span_s: float
+        self,
+        events: Events,
+        t_mid: float,
+        R_pred: np.ndarray,
+        span_s: float,
+        levels: np.ndarray | None = None,
+        selected: np.ndarray | None = None,
     ) -> AttitudeSolution:
         c = self.config
         cam = self.cam
@@ -524,7 +845,8 @@ class StarTracker:
         star = np.broadcast_to(np.arange(1, rows.size + 1)[:, None, None], X.shape)
         label[(Y * cam.width + X)[inside]] = star[inside]
         lab = label[events.y.astype(np.int64) * cam.width + events.x.astype(np.int64)]
-        hit = lab > 0
+        gated = lab > 0
+        hit = gated if selected is None else gated & selected
         if not hit.any():
             return AttitudeSolution(t_mid, None, None, "lost")
         cen, t_star, cnt = _balanced_centroids(
@@ -543,19 +865,66 @@ class StarTracker:
         w = self.body_rate_rad_s()
         b_mid = b + np.cross(b, w) * (t_mid - t_star[ok])[:, None]  # d b/dt = -w x b = b x w
         b_mid /= np.linalg.norm(b_mid, axis=1, keepdims=True)
-        return self._solve(t_mid, b_mid, self.cat.ids[rows[ok]], "tracking")
+        if levels is None or c.centroid != "spot_fit" or len(self.history) < 2:
+            # (Without a rate the fit would take moving stars for still ones.)
+            return self._solve(t_mid, b_mid, self.cat.ids[rows[ok]], "tracking")
+        # Moving-spot fit, started from the moved centroids, velocity from the predicted rate,
+        # on the fit_max_stars stars with the most events (CPU per output bounded).
+        if ok.sum() > c.fit_max_stars:
+            keep_rows = np.flatnonzero(ok)[np.argsort(-cnt[ok], kind="stable")]
+            sub = np.isin(np.flatnonzero(ok), keep_rows[: c.fit_max_stars])
+            ok[np.flatnonzero(ok)[~sub]] = False
+            b_mid = b_mid[sub]
+        px_mid = b_mid[:, :2] / b_mid[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+        db = np.cross(b_mid, w)
+        vel = (db[:, :2] * b_mid[:, 2:3] - b_mid[:, :2] * db[:, 2:3]) / b_mid[:, 2:3] ** 2
+        vel *= [cam.fx, cam.fy]
+        new_lab = np.full(rows.size + 1, -1, dtype=np.int64)
+        new_lab[1:][ok] = np.arange(int(ok.sum()))
+        hit = gated
+        li = new_lab[lab[hit]]
+        use = (li >= 0) & (levels[hit] > 0)
+        # At most about fit_max_events per star (a deterministic, evenly spread subset: the
+        # golden-ratio sequence of the event index): CPU per output stays bounded at fast
+        # slews, where a star fires hundreds of events per window.
+        n_star = np.bincount(li[use], minlength=int(ok.sum()))
+        frac = (np.arange(li.size) * 0.6180339887498949) % 1.0
+        use &= frac < c.fit_max_events / np.maximum(n_star, 1)[np.maximum(li, 0)]
+        lvl = levels[hit][use]
+        li = li[use]
+        top = np.zeros(int(ok.sum()))
+        np.maximum.at(top, li, lvl)
+        g0 = float((2 * ndtr(0.5 / c.psf_sigma_px) - 1) ** 2)
+        C = c.contrast_threshold
+        log_flux0 = np.log(np.maximum(np.expm1((top + 0.5) * C), 1e-3) / g0)
+        fit = fit_moving_spots(
+            li,
+            events.x[hit][use].astype(float),
+            events.y[hit][use].astype(float),
+            events.t_s[hit][use] - t_mid,
+            lvl * C,
+            px_mid,
+            vel,
+            log_flux0,
+            c.psf_sigma_px,
+            np.hypot(0.03, lvl * c.threshold_sigma),
+        )
+        good = fit.ok
+        if good.sum() < c.min_stars:
+            return self._solve(t_mid, b_mid, self.cat.ids[rows[ok]], "tracking")
+        b_fit = bearings(cam, fit.px[good])
+        # Per-star noise from the fit (mean of the two axes' variances), floored.
+        var = 0.5 * np.trace(fit.cov[good], axis1=1, axis2=2)
+        sig = np.sqrt(var + c.fit_sigma_floor_px**2) / cam.fx
+        return self._solve(t_mid, b_fit, self.cat.ids[rows[ok][good]], "tracking", sig)
 
 
-def _with_cpu(sol: AttitudeSolution, start: float) -> AttitudeSolution:
-    return AttitudeSolution(
-        sol.t_s,
-        sol.R,
-        sol.cov,
-        sol.status,
-        sol.star_ids,
-        sol.b_cam,
-        1e3 * (time.process_time() - start),
-    )
+def _subset(events: Events, keep: np.ndarray) -> Events:
+    return Events(t_us=events.t_us[keep], x=events.x[keep], y=events.y[keep], p=events.p[keep])
+
+
+def _with_cpu(sol: AttitudeSolution, start: float, span_s: float = 0.0) -> AttitudeSolution:
+    return replace(sol, cpu_ms=1e3 * (time.process_time() - start), span_s=span_s)
 
 
 def run_event_tracker(
@@ -565,13 +934,35 @@ def run_event_tracker(
     the last `StarTracker.integration_s`, at the centre of the newest ``window_s``); while
     lost, consecutive windows of ``lis_window_s`` (doubled after each failure, up to 8x) go to
     the lost-in-space solver. With
-    ``drop_peak_on`` the peak ON events of the whole stream are removed first."""
+    ``event_selection`` the stream's events are selected first (`matched_ladder_events`,
+    `peak_on_events`); with ``centroid="spot_fit"`` every event's threshold level is
+    computed first (`ladder_levels`). Each output's ``stream_cpu_ms`` is an even share of
+    that whole-stream step."""
     c = tracker.config
-    if c.drop_peak_on and len(events):
-        keep = ~peak_on_events(events.x, events.y, events.p)
-        events = Events(
-            t_us=events.t_us[keep], x=events.x[keep], y=events.y[keep], p=events.p[keep]
+    cpu0 = time.process_time()
+    selected = np.ones(len(events), dtype=bool)
+    passes = None
+    if len(events) and (c.event_selection == "matched" or c.centroid == "spot_fit"):
+        passes = pixel_passes(events.t_s, events.x, events.y, events.p)
+    if c.event_selection == "matched" and len(events):
+        selected = matched_ladder_events(events.t_s, events.x, events.y, events.p, passes=passes)
+    elif c.event_selection == "drop_peak" and len(events):
+        selected = ~peak_on_events(events.x, events.y, events.p)
+    levels: np.ndarray | None = None
+    if c.centroid == "spot_fit" and passes is not None:
+        levels = ladder_levels(events.p, passes)
+    else:
+        events = _subset(events, selected)
+        selected = np.ones(len(events), dtype=bool)
+    prep_cpu_ms = 1e3 * (time.process_time() - cpu0)
+
+    def window(a: float, b: float) -> tuple[Events, np.ndarray, np.ndarray | None]:
+        i0, i1 = np.searchsorted(events.t_us, [round(a * 1e6), round(b * 1e6)])
+        ev = Events(
+            t_us=events.t_us[i0:i1], x=events.x[i0:i1], y=events.y[i0:i1], p=events.p[i0:i1]
         )
+        return ev, selected[i0:i1], None if levels is None else levels[i0:i1]
+
     out: list[AttitudeSolution] = []
     t = t0_s
     fails = 0
@@ -581,13 +972,27 @@ def run_event_tracker(
             if b > t1_s + 1e-9:
                 break
             span = tracker.integration_s()
-            ev = events.slice_time(max(t0_s, b - span), b)
+            ev, sel, lv = window(max(t0_s, b - span), b)
             if len(tracker.history) < 2:
                 # No rate yet to move centroids in time: the attitude is that of the span's
                 # centre (still later than the lost-in-space output before it).
-                sol = tracker.track_events(ev, b - span, b)
+                sol = tracker.track_events(ev, b - span, b, levels=lv, selected=sel)
             else:
-                sol = tracker.track_events(ev, t, b, span_s=span)
+                saved = list(tracker.history)
+                sol = tracker.track_events(ev, t, b, span_s=span, levels=lv, selected=sel)
+                cpu = sol.cpu_ms
+                # Too few events (the stars nearly stop along track when the jitter cancels
+                # a slow slew): retry the same output with twice the span, up to
+                # lis_window_s, before giving up tracking. Only once the rate rests on half
+                # the rate history (right after acquisition a failure means a bad rate).
+                settled = len(saved) > c.rate_history // 2
+                while settled and sol.status != "tracking" and span < c.lis_window_s:
+                    span = min(2 * span, c.lis_window_s)
+                    tracker.history[:] = saved
+                    ev, sel, lv = window(max(t0_s, b - span), b)
+                    sol = tracker.track_events(ev, t, b, span_s=span, levels=lv, selected=sel)
+                    cpu += sol.cpu_ms
+                sol = replace(sol, cpu_ms=cpu)
         else:
             # Lost: non-overlapping lost-in-space windows, so output times keep increasing;
             # after each failure the next window is twice as long (up to 8x): few stars fire
@@ -595,8 +1000,12 @@ def run_event_tracker(
             b = t + c.lis_window_s * 2 ** min(fails, 3)
             if b > t1_s + 1e-9:
                 break
-            sol = tracker.track_events(events.slice_time(t, b), t, b)
+            ev, sel, _ = window(t, b)
+            sol = tracker.track_events(_subset(ev, sel), t, b)
         out.append(sol)
         fails = fails + 1 if sol.R is None else 0
         t = b
-    return out
+    # The whole-stream pass analysis (incremental per event in an online system) is charged
+    # to the outputs evenly.
+    share = prep_cpu_ms / max(len(out), 1)
+    return [replace(s, stream_cpu_ms=share) for s in out]

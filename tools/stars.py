@@ -51,7 +51,12 @@ class TrackResult:
 
 def windows_from_solutions(sols: list[AttitudeSolution], sigma_rad: float) -> list[Any]:
     """Rotation-graph windows: absolute attitudes and rotation-only relative rotations from the
-    stars two consecutive windows share."""
+    stars two consecutive windows share.
+
+    An event output integrates ``span_s`` of events but comes every ``t_i - t_{i-1}``: where
+    the spans overlap, consecutive outputs share events, so their errors are not independent
+    as the graph assumes. Each absolute covariance is multiplied by the overlap
+    ``max(1, span / output period)`` (the number of outputs each event is in)."""
     from satpose.backend.rotation import AttitudeWindow
 
     out = []
@@ -62,7 +67,10 @@ def windows_from_solutions(sols: list[AttitudeSolution], sigma_rad: float) -> li
             common, ia, ib = np.intersect1d(prev.star_ids, s.star_ids, return_indices=True)
             if common.size >= 3:
                 rel_R, rel_cov = relative_rotation_bearings(prev.b_cam[ia], s.b_cam[ib], sigma_rad)
-        out.append(AttitudeWindow(t_s=s.t_s, R=s.R, cov=s.cov, rel_R=rel_R, rel_cov=rel_cov))
+        cov = s.cov
+        if cov is not None and prev is not None and s.span_s > 0 and s.t_s > prev.t_s:
+            cov = cov * max(1.0, s.span_s / (s.t_s - prev.t_s))
+        out.append(AttitudeWindow(t_s=s.t_s, R=s.R, cov=cov, rel_R=rel_R, rel_cov=rel_cov))
         prev = s
     return out
 
@@ -100,7 +108,9 @@ def track_sequence(
                 break
             sols.append(tracker.track_spots(frame_spots(fr.image("left"), fr.t_s), fr.t_s))
     windows = windows_from_solutions(sols, tracker.sigma_rad)
-    gc = graph_config or RotationGraphConfig()
+    # Relative factors off: between two windows that both have absolute priors they reuse
+    # the priors' bearings (double counting; docs/stars.md measures both).
+    gc = graph_config or RotationGraphConfig(relative_factors=False)
     n = len(windows)
     R = np.full((n, 3, 3), np.nan)
     cov = np.full((n, 3, 3), np.nan)

@@ -1,0 +1,184 @@
+"""Event star positions (seed 004): pass structure, threshold levels, level-matched events and
+the moving-spot fit against the simulator's truth (threshold mismatch on)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+
+from satpose.datasets.events import Events, EventSensor, Photometry, simulate_events
+from satpose.datasets.geometry import rotvec_to_matrix
+from satpose.datasets.sky import StarCatalogue, star_camera
+from satpose.frontend.stars import (
+    _balanced_centroids,
+    fit_moving_spots,
+    ladder_levels,
+    matched_ladder_events,
+    peak_on_events,
+    pixel_passes,
+)
+
+ARCSEC = math.pi / (180 * 3600)
+PHOT = Photometry()
+
+
+def test_matched_ladder_events_keep_level_pairs() -> None:
+    # pixel 0: 4 ON then 5 OFF -> K = min(3, 5) = 3: ON 1..3 (not the top), OFF 1..3
+    # pixel 1: one ON (noise or a faint pass) -> nothing; pixel 2: one OFF -> nothing
+    # pixel 3: 3 ON then 1 OFF -> K = 1: the ON just below the top and the OFF
+    p = np.array([1, 1, 1, 1, 0, 0, 0, 0, 0, 1, 0, 1, 1, 1, 0], np.uint8)
+    x = np.array([0] * 9 + [1] + [2] + [3] * 4, np.uint16)
+    y = np.zeros(p.size, np.uint16)
+    t = np.arange(p.size) * 1e-3
+    keep = matched_ladder_events(t, x, y, p, edge_s=0.0)
+    np.testing.assert_array_equal(keep, [1, 1, 1, 0, 1, 1, 1, 0, 0, 0, 0, 0, 1, 0, 1])
+    levels = ladder_levels(p, pixel_passes(t, x, y, p, edge_s=0.0))
+    np.testing.assert_array_equal(levels[:9], [1, 2, 3, 4, 3, 2, 1, 0, -1])
+    np.testing.assert_array_equal(levels[11:], [1, 2, 3, 2])
+
+
+CAM = star_camera(96, 64, 3.0)  # 1833 px/rad, about the 640 px 20 deg sensor's scale
+RATE = math.radians(1.0)  # 1 deg/s about the camera y axis: stars move along x at ~32 px/s
+JIT_HZ, JIT_AMP = 17.0, 10 * ARCSEC  # cross-track jitter (about the camera x axis)
+
+
+def _field() -> tuple[StarCatalogue, np.ndarray]:
+    rng = np.random.default_rng(21)
+    n = 24
+    px = np.column_stack([rng.uniform(36, 90, n), rng.uniform(6, 58, n)])
+    v = np.column_stack([(px - [CAM.cx, CAM.cy]) / [CAM.fx, CAM.fy], np.ones(n)])
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    mag = rng.uniform(5.0, 7.0, n)
+    return StarCatalogue(hip=np.arange(n), unit=v, mag=mag, epoch_yr=2026.0), px
+
+
+def _attitude(t: np.ndarray) -> np.ndarray:
+    t = np.atleast_1d(np.asarray(t, float))
+    jit = JIT_AMP * np.sin(2 * np.pi * JIT_HZ * t)
+    return rotvec_to_matrix(np.column_stack([jit, RATE * t, 0 * t]))
+
+
+def _project(cat: StarCatalogue, t: float) -> np.ndarray:
+    v = cat.unit @ _attitude(np.array([t]))[0]
+    return v[:, :2] / v[:, 2:3] * [CAM.fx, CAM.fy] + [CAM.cx, CAM.cy]
+
+
+@pytest.fixture(scope="module")
+def spot_run() -> tuple[StarCatalogue, Events]:
+    cat, _ = _field()
+    sensor = EventSensor(threshold_sigma=0.03, noise_rate_hz=0.0)
+    ev = simulate_events(cat, _attitude, CAM, PHOT, sensor, 0.0, 1.2, np.random.default_rng(5))
+    return cat, ev
+
+
+def _window_estimates(
+    cat: StarCatalogue, ev: Events, method: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per window (5 ms outputs, 5 ms of events) and star: estimated minus true pixel, the
+    true cross-track jitter displacement (px) and the window time."""
+    levels = ladder_levels(ev.p, pixel_passes(ev.t_s, ev.x, ev.y, ev.p))
+    if method == "drop_peak":
+        sel = ~peak_on_events(ev.x, ev.y, ev.p)
+    else:
+        sel = matched_ladder_events(ev.t_s, ev.x, ev.y, ev.p)
+    errs, jit, times = [], [], []
+    g0 = float((2 * ndtr(0.5 / PHOT.psf_sigma_px) - 1) ** 2)
+    for b in np.arange(0.3, 0.9, 0.005):
+        tm = b - 0.0025
+        i0, i1 = np.searchsorted(ev.t_us, [round((b - 0.005) * 1e6), round(b * 1e6)])
+        x, y = ev.x[i0:i1].astype(float), ev.y[i0:i1].astype(float)
+        truth = _project(cat, tm)
+        d2 = (x[:, None] - truth[None, :, 0]) ** 2 + (y[:, None] - truth[None, :, 1]) ** 2
+        star = np.argmin(d2, axis=1)
+        near = d2[np.arange(x.size), star] < 4.0**2  # association gate only
+        vel = (_project(cat, tm + 1e-4) - _project(cat, tm - 1e-4)) / 2e-4
+        m = near & sel[i0:i1]
+        cen, t_c, cnt = _balanced_centroids(
+            star[m] + 1, len(cat), x[m], y[m], ev.t_s[i0:i1][m], ev.p[i0:i1][m]
+        )
+        est = cen + vel * (tm - t_c)[:, None]
+        ok = cnt >= 4
+        if method == "spot_fit":
+            m = near & (levels[i0:i1] > 0)
+            lv = levels[i0:i1][m]
+            top = np.zeros(len(cat))
+            np.maximum.at(top, star[m], lv)
+            fit = fit_moving_spots(
+                star[m],
+                x[m],
+                y[m],
+                ev.t_s[i0:i1][m] - tm,
+                lv * 0.25,
+                np.where(ok[:, None], est, truth),  # stars without a centroid are not used
+                vel,
+                np.log(np.expm1((top + 0.5) * 0.25) / g0),
+                PHOT.psf_sigma_px,
+                np.hypot(0.03, lv * 0.03),
+            )
+            est, ok = fit.px, ok & fit.ok
+        no_jit = cat.unit @ rotvec_to_matrix(np.array([[0.0, RATE * tm, 0.0]]))[0]
+        py = no_jit[:, 1] / no_jit[:, 2] * CAM.fy + CAM.cy
+        errs.append((est - truth)[ok])
+        jit.append((truth[:, 1] - py)[ok])
+        times.append(np.full(int(ok.sum()), tm))
+    return np.concatenate(errs), np.concatenate(jit), np.concatenate(times)
+
+
+def _jitter_gain(err: np.ndarray, jit: np.ndarray, t: np.ndarray) -> float:
+    """Least-squares gain of the per-window mean cross-track error on the jitter: 0 = the
+    jitter is followed, -1 = missed."""
+    tw = np.unique(t)
+    e = np.array([err[t == k, 1].mean() for k in tw])
+    j = np.array([jit[t == k].mean() for k in tw])
+    A = np.column_stack([j, np.ones_like(j)])
+    return float(np.linalg.lstsq(A, e, rcond=None)[0][0])
+
+
+def test_spot_fit_has_no_along_track_lag_and_follows_jitter(spot_run) -> None:  # type: ignore[no-untyped-def]
+    cat, ev = spot_run
+    err_fit, jit, t = _window_estimates(cat, ev, "spot_fit")
+    err_old, jit_old, t_old = _window_estimates(cat, ev, "drop_peak")
+    # Along track (x): the balanced centroid without the peak ON events lags by ~0.08 px
+    # with threshold mismatch 0.03 (docs/results/stars.md); the fit stays within 0.03 px.
+    assert abs(err_old[:, 0].mean()) > 0.05
+    assert abs(err_fit[:, 0].mean()) < 0.03
+    # Cross track (y): the 17 Hz jitter (0.09 px) is followed by the fit, mostly missed by
+    # the centroid of event counts at this slow slew.
+    assert _jitter_gain(err_old, jit_old, t_old) < -0.5
+    assert abs(_jitter_gain(err_fit, jit, t)) < 0.25
+    # Per-star noise (5 ms of events) well below the count centroid's.
+    assert np.sqrt(np.mean(err_fit**2)) < 0.8 * np.sqrt(np.mean(err_old**2))
+
+
+def test_ladder_levels_match_the_log_intensity() -> None:
+    """Noise-free, no mismatch: each event's level times C is the pixel's log intensity above
+    the background when it fired (to the simulator's 0.1 px sampling)."""
+    cat = StarCatalogue(
+        hip=np.array([1]), unit=np.array([[0.0, 0.0, 1.0]]), mag=np.array([5.0]), epoch_yr=2026.0
+    )
+    half = math.atan(53.0 / CAM.fx)  # from 5 px beyond one side to 5 px beyond the other
+
+    def att(t: np.ndarray) -> np.ndarray:
+        ang = half - 2 * half * np.atleast_1d(t) / 2.5
+        return rotvec_to_matrix(np.column_stack([0 * ang, ang, 0 * ang]))
+
+    sensor = EventSensor(
+        contrast_threshold=0.2, threshold_sigma=0.0, refractory_s=0.0, noise_rate_hz=0.0
+    )
+    ev = simulate_events(cat, att, CAM, PHOT, sensor, 0.0, 2.5, np.random.default_rng(0))
+    lv = ladder_levels(ev.p, pixel_passes(ev.t_s, ev.x, ev.y, ev.p, edge_s=0.0))
+    v = np.einsum("k,nkj->nj", cat.unit[0], att(ev.t_s))
+    sx = v[:, 0] / v[:, 2] * CAM.fx + CAM.cx
+    sy = v[:, 1] / v[:, 2] * CAM.fy + CAM.cy
+    s = PHOT.psf_sigma_px
+
+    def g(u: np.ndarray) -> np.ndarray:
+        return ndtr((u + 0.5) / s) - ndtr((u - 0.5) / s)
+
+    flux = float(PHOT.flux_e_s(np.array([5.0]))[0])
+    dL = np.log1p(flux * g(ev.x - sx) * g(ev.y - sy) / PHOT.background_e_s)
+    assert len(ev) > 500
+    np.testing.assert_allclose(lv * 0.2, dL, atol=0.02)
