@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import metadata
 from pathlib import Path
 from types import ModuleType
@@ -39,7 +39,9 @@ from satpose.datasets.config import to_plain
 from satpose.datasets.geometry import Rigid3
 from satpose.datasets.scenarios import Scenario, trajectory
 from satpose.datasets.scene import RenderError, load_mitsuba, scene_dict, target_shapes
-from satpose.datasets.sequence import SequenceWriter
+from satpose.datasets.sequence import SequenceWriter, TargetGeometry
+from satpose.datasets.servicer_rings import RingsShapes
+from satpose.datasets.servicer_rings import to_yaml as rings_to_yaml
 from satpose.datasets.target import MASK_IDS, geometry
 
 log = logging.getLogger(__name__)
@@ -168,7 +170,8 @@ class StereoRenderer:
     """Renders a scenario's rig around the target, frame by frame.
 
     The scene is built once (textures uploaded once); per frame only the sensors and the light
-    move, in the target frame.
+    move, in the target frame (and the servicer's ring target, which is fixed in the camera
+    frame, if the scenario has one).
     """
 
     def __init__(
@@ -193,6 +196,11 @@ class StereoRenderer:
             self.views.append(make_view("right", calib.right, calib.right_from_left))
         shapes = target_shapes(mi, scenario.target, scenario.seed, emissive=parts)
         all_shapes = {**shapes.shapes, **(extra_shapes or {})}
+        rings_cfg = scenario.servicer_rings if parts is None else None
+        self._rings = RingsShapes(mi, rings_cfg) if rings_cfg is not None else None
+        self._rings_ids: RingsShapes | None = None
+        if self._rings is not None:
+            all_shapes.update(self._rings.shapes)
         dark = {
             "type": "point",
             "position": [0.0, 0.0, 0.0],
@@ -205,6 +213,7 @@ class StereoRenderer:
         )
         self.params = mi.traverse(self.scene)
         self._id_scene = None
+        self._id_params: Any = None
         if parts is None and scenario.render.masks:
             # Object ids: every part emits its mask id; one sample per pixel, no light.
             ids = target_shapes(
@@ -213,7 +222,13 @@ class StereoRenderer:
                 scenario.seed,
                 emissive={p: float(i) for p, i in MASK_IDS.items() if i > 0},
             )
-            self._id_scene = mi.load_dict(scene_dict(ids.shapes, dark, 1), optimize=False)
+            id_shapes = dict(ids.shapes)
+            if rings_cfg is not None:
+                # The ring plate is not the target: black (id 0), but it hides what is behind.
+                self._rings_ids = RingsShapes(mi, rings_cfg, black=True)
+                id_shapes.update(self._rings_ids.shapes)
+            self._id_scene = mi.load_dict(scene_dict(id_shapes, dark, 1), optimize=False)
+            self._id_params = mi.traverse(self._id_scene)
 
     def _light_dict(self, target_from_left: Rigid3) -> dict[str, Any]:
         lc = self.scenario.light
@@ -269,6 +284,9 @@ class StereoRenderer:
         light is placed as at the frame's time (`frame_time`)."""
         target_from_left = left_cam_from_target.inverse()
         self._move_light(target_from_left, self.frame_time(frame))
+        if self._rings is not None:
+            self._rings.place(self.params, target_from_left @ self._rings.cfg.true_pose())
+            self.params.update()
         out = {}
         for k, view in enumerate(self.views):
             target_from_cam = target_from_left @ view.cam_from_left.inverse()
@@ -287,6 +305,11 @@ class StereoRenderer:
         if self._id_scene is None:
             raise RenderError("this renderer was built without masks (render.masks = false)")
         target_from_left = left_cam_from_target.inverse()
+        if self._rings_ids is not None:
+            self._rings_ids.place(
+                self._id_params, target_from_left @ self._rings_ids.cfg.true_pose()
+            )
+            self._id_params.update()
         out = {}
         for k, view in enumerate(self.views):
             target_from_cam = target_from_left @ view.cam_from_left.inverse()
@@ -324,6 +347,17 @@ class StereoRenderer:
         return images, masks
 
 
+def target_geometry(scenario: Scenario) -> TargetGeometry:
+    """target.yaml of a rendered scenario: the target's geometry, plus the servicer's ring
+    target (extra key ``servicer_rings``, `satpose.datasets.servicer_rings.to_yaml`) if any."""
+    tg = geometry(scenario.target)
+    if scenario.servicer_rings is None:
+        return tg
+    return replace(
+        tg, extras={**tg.extras, "servicer_rings": rings_to_yaml(scenario.servicer_rings)}
+    )
+
+
 def render_sequence(
     scenario: Scenario,
     out: str | Path,
@@ -352,7 +386,7 @@ def render_sequence(
         kind="stereo" if calib.is_stereo else "mono",
         rate_hz=scenario.rate_hz,
         calibration=calib,
-        target=geometry(scenario.target),
+        target=target_geometry(scenario),
         overwrite=overwrite,
     )
     with writer:

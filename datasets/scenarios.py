@@ -13,10 +13,11 @@ frame, rad/s) and the velocity of the target-frame origin in the left camera fra
 
 Presets (`PRESETS`): ``paper-docking``, ``tumble``, ``close-approach`` (stereo),
 ``spin-far`` (mono, seed 001's far fast spinner), ``bracket-final`` (mono, seed 002's final
-approach), ``calibration`` (a ChArUco board instead of the satellite, at independent
-poses: `satpose.datasets.board`) and ``turntable`` (the target turning in place: the SfM check's
-scene). Each scales down with `scaled` (frames, image size, samples
-per pixel, seed) for tests: fewer frames keep the per-frame motion and cut the sequence short.
+approach), ``rings-check`` (``bracket-final`` with the servicer's ring target),
+``calibration`` (a ChArUco board instead of the satellite, at independent poses:
+`satpose.datasets.board`) and ``turntable`` (the target turning in place: the SfM check's
+scene). Each scales down with `scaled` (frames, image size, samples per pixel, seed) for
+tests: fewer frames keep the per-frame motion and cut the sequence short.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.errors import ConfigError
 from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
 from satpose.datasets.sequence import Calibration
+from satpose.datasets.servicer_rings import ServicerRingsConfig
 from satpose.datasets.target import TargetConfig, bracket_geometry, layout
 
 Vec3 = tuple[float, float, float]
@@ -239,6 +241,8 @@ class Scenario:
 
     ``board``: a calibration board replaces the satellite and ``motion`` (see
     `satpose.datasets.board`); None renders the satellite.
+    ``servicer_rings``: the servicer's concentric-ring calibration target, fixed in the left
+    camera frame (`satpose.datasets.servicer_rings`); None = not in view.
     """
 
     name: str
@@ -252,6 +256,7 @@ class Scenario:
     target: TargetConfig = field(default_factory=TargetConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     board: BoardConfig | None = None
+    servicer_rings: ServicerRingsConfig | None = None
 
     def __post_init__(self) -> None:
         if self.frames < 1:
@@ -471,6 +476,23 @@ def bracket_final() -> Scenario:
     )._with_centre_at((0.03, -0.02, 1.4))
 
 
+def rings_check() -> Scenario:
+    """`bracket-final` with the servicer's concentric-ring calibration target in view (seed
+    002, sec. 1: red rings on the servicer, in the boom camera's field of view together with
+    the target): three red bands (edges 10/15, 25/30, 40/45 mm) on a grey plate 0.6 m from the
+    camera in the lower-left corner of the image, tilted 50 deg; 11 frames (the first 11 s of
+    the approach), colour images so that the rings look red. `satpose rings` checks the
+    camera's mounting against it."""
+    s = bracket_final()
+    return replace(
+        s,
+        name="rings-check",
+        frames=11,
+        sensor=SensorConfig(mono=False),
+        servicer_rings=ServicerRingsConfig(),
+    )
+
+
 def calibration() -> Scenario:
     """A ChArUco board (14 x 10 squares of 4.5 cm, `BoardConfig`) shown to the stereo rig at
     60 poses 0.5-1.2 m away, tilted 20-55 deg, evenly lit; the rig's true distortion applied;
@@ -509,6 +531,7 @@ PRESETS: dict[str, Callable[[], Scenario]] = {
     "close-approach": close_approach,
     "spin-far": spin_far,
     "bracket-final": bracket_final,
+    "rings-check": rings_check,
     "calibration": calibration,
     "turntable": turntable,
 }

@@ -217,12 +217,20 @@ def _annulus_mesh(
     i = np.arange(segments)
     j = (i + 1) % segments
     faces = np.vstack([np.c_[i, j, segments + i], np.c_[j, segments + j, segments + i]])
+    return triangle_mesh(mi, name, verts, faces, attach)
+
+
+def triangle_mesh(
+    mi: ModuleType, name: str, verts: np.ndarray, faces: np.ndarray, attach: dict[str, Any]
+) -> Any:
+    """A Mitsuba mesh from vertices (V, 3) and faces (F, 3); ``attach`` maps "bsdf" (and
+    optionally "emitter") to plugin dicts."""
     props = mi.Properties()
-    for key, plugin in attach.items():  # "bsdf" and optionally "emitter"
+    for key, plugin in attach.items():
         props[key] = mi.load_dict(plugin)
     mesh = mi.Mesh(
         name,
-        vertex_count=2 * segments,
+        vertex_count=verts.shape[0],
         face_count=faces.shape[0],
         props=props,
         has_vertex_normals=False,

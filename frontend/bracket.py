@@ -40,7 +40,7 @@ from typing import Literal
 import numpy as np
 
 from satpose.datasets.errors import SatposeError
-from satpose.datasets.geometry import Rigid3, matrix_to_rotvec
+from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix
 from satpose.frontend.measurements import (
     FrameMeasurements,
     MeasurementError,
@@ -380,9 +380,14 @@ def quartic_roots(a4: float, a3: float, a2: float, a1: float, a0: float) -> list
 
 
 def _newton_depths(
-    d: list[float], r: list[list[float]], sides: tuple[float, float, float], iterations: int
+    d: list[float],
+    r: list[list[float]],
+    sides: tuple[float, float, float],
+    iterations: int,
+    tol: float,
 ) -> tuple[list[float], float]:
-    """Newton on eq. 9 in pure-Python scalars (3x3, Cramer's rule); returns depths and the
+    """Newton on eq. 9 in pure-Python scalars (3x3, Cramer's rule) until the residual norm is
+    below ``tol`` [m] (the closed-form roots usually are already); returns depths and the
     residual norm [m]."""
     pairs = ((0, 1), (0, 2), (1, 2))
     d1, d2, d3 = d
@@ -390,7 +395,7 @@ def _newton_depths(
     for it in range(iterations + 1):
         dd = (d1, d2, d3)
         F = [0.0, 0.0, 0.0]
-        J = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+        E = []
         for row, (i, j) in enumerate(pairs):
             ri, rj = r[i], r[j]
             ex = dd[i] * ri[0] - dd[j] * rj[0]
@@ -398,12 +403,17 @@ def _newton_depths(
             ez = dd[i] * ri[2] - dd[j] * rj[2]
             n = math.sqrt(ex * ex + ey * ey + ez * ez)
             F[row] = n - sides[row]
+            E.append((ex, ey, ez, n))
+        res = math.sqrt(F[0] ** 2 + F[1] ** 2 + F[2] ** 2)
+        if it == iterations or res <= tol:
+            break
+        J = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+        for row, (i, j) in enumerate(pairs):
+            ri, rj = r[i], r[j]
+            ex, ey, ez, n = E[row]
             if n > 0:
                 J[row][i] = (ex * ri[0] + ey * ri[1] + ez * ri[2]) / n
                 J[row][j] = -(ex * rj[0] + ey * rj[1] + ez * rj[2]) / n
-        res = math.sqrt(F[0] ** 2 + F[1] ** 2 + F[2] ** 2)
-        if it == iterations:
-            break
         (a, b, c), (e, f, g), (h, k, m) = J
         det = a * (f * m - g * k) - b * (e * m - g * h) + c * (e * k - f * h)
         if abs(det) < 1e-300:
@@ -415,23 +425,12 @@ def _newton_depths(
     return [d1, d2, d3], res
 
 
-def p3p_depths(rays: np.ndarray, sides: np.ndarray) -> np.ndarray:
-    """Every real solution of eq. 9 from Grunert's quartic (Haralick et al. 1994, sec. 2.1).
-
-    Args:
-        rays: (3, 3) rows ``[k_x, k_y, 1]`` of ``p1, p2, p5``.
-        sides: ``l12, l15, l25`` [m].
-
-    Returns:
-        ``(m, 3)`` depths ``d1, d2, d5`` with all depths positive, ``m`` in 0..4, each polished
-        by Newton's method.
-    """
-    r = rays.tolist()
+def _p3p_scalar(r: list[list[float]], sides: tuple[float, float, float]) -> list[list[float]]:
+    """`p3p_depths` on Python lists (rows ``[k_x, k_y, 1]``; sides ``l12, l15, l25``)."""
     norms = [math.sqrt(x * x + y * y + z * z) for x, y, z in r]
     j = [[v / n for v in row] for row, n in zip(r, norms, strict=True)]
     # Grunert's notation: points 1, 2, 3 = P1, P2, P5; a, b, c are the sides opposite them.
-    lc, lb, la = (float(x) for x in sides)
-    side_t = (lc, lb, la)
+    lc, lb, la = sides
     cos_a = j[1][0] * j[2][0] + j[1][1] * j[2][1] + j[1][2] * j[2][2]
     cos_b = j[0][0] * j[2][0] + j[0][1] * j[2][1] + j[0][2] * j[2][2]
     cos_g = j[0][0] * j[1][0] + j[0][1] * j[1][1] + j[0][2] * j[1][2]
@@ -451,8 +450,9 @@ def p3p_depths(rays: np.ndarray, sides: np.ndarray) -> np.ndarray:
     A1 = 4 * (-amc * (1 + amc) * cos_b + 2 * a2 / b2 * cos_g**2 * cos_b - (1 - apc) * cos_a * cos_g)
     A0 = (1 + amc) ** 2 - 4 * a2 / b2 * cos_g**2
     if abs(A4) < 1e-300:
-        return np.zeros((0, 3))
-    tol = 1e-7 * max(side_t)
+        return []
+    scale = max(sides)
+    tol = 1e-7 * scale
     keep: list[list[float]] = []
     for root in quartic_roots(A4, A3, A2, A1, A0):
         # Keep nearly-real roots too: noise can split a double root into a complex pair;
@@ -469,12 +469,210 @@ def p3p_depths(rays: np.ndarray, sides: np.ndarray) -> np.ndarray:
             continue
         s1 = math.sqrt(b2 / q)
         d0 = [s1 / norms[0], u * s1 / norms[1], v * s1 / norms[2]]
-        d, res = _newton_depths(d0, r, side_t, 2)
+        d, res = _newton_depths(d0, r, sides, 3, 1e-12 * scale)
         if res > tol or min(d) <= 0:
             continue
-        if all(math.dist(d, k) > 1e-5 * max(side_t) for k in keep):
+        if all(math.dist(d, k) > 1e-5 * scale for k in keep):
             keep.append(d)
+    return keep
+
+
+def p3p_depths(rays: np.ndarray, sides: np.ndarray) -> np.ndarray:
+    """Every real solution of eq. 9 from Grunert's quartic (Haralick et al. 1994, sec. 2.1).
+
+    Args:
+        rays: (3, 3) rows ``[k_x, k_y, 1]`` of ``p1, p2, p5``.
+        sides: ``l12, l15, l25`` [m].
+
+    Returns:
+        ``(m, 3)`` depths ``d1, d2, d5`` with all depths positive, ``m`` in 0..4, each polished
+        by Newton's method to a residual below 1e-12 of the longest side.
+    """
+    l12, l15, l25 = (float(x) for x in sides)
+    keep = _p3p_scalar(np.asarray(rays, dtype=float).tolist(), (l12, l15, l25))
     return np.array(keep, dtype=float).reshape(-1, 3)
+
+
+def quartic_roots_batch(coeffs: np.ndarray) -> np.ndarray:
+    """`quartic_roots` vectorised: ``(N, 5)`` coefficients ``a4 .. a0`` -> ``(N, 4)`` complex
+    roots (the same formulas, evaluated with numpy's principal complex roots)."""
+    c = np.asarray(coeffs, dtype=complex)
+    a, b, cc, d = (c[:, k] / c[:, 0] for k in (1, 2, 3, 4))
+    p = b - 3 * a * a / 8
+    q = cc - a * b / 2 + a**3 / 8
+    r = d - a * cc / 4 + a * a * b / 16 - 3 * a**4 / 256
+    shift = -a / 4
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # biquadratic (q = 0)
+        disc2 = np.sqrt(p * p - 4 * r)
+        z = np.stack([(-p + disc2) / 2, (-p - disc2) / 2], axis=-1)
+        sz = np.sqrt(z)
+        biq = np.stack([sz[:, 0], -sz[:, 0], sz[:, 1], -sz[:, 1]], axis=-1) + shift[:, None]
+        # resolvent cubic m^3 + p m^2 + (p^2/4 - r) m - q^2/8 = 0 (Cardano), largest real root
+        B, C, D = p, p * p / 4 - r, -q * q / 8
+        Q = (3 * C - B * B) / 9
+        R = (9 * B * C - 27 * D - 2 * B**3) / 54
+        disc = np.sqrt(Q**3 + R * R)
+        base = np.where(R + disc != 0, R + disc, R - disc)
+        S = base ** (1 / 3)
+        T = np.where(S != 0, -Q / S, 0)
+        w = complex(-0.5, math.sqrt(3) / 2)
+        ms = np.stack(
+            [S + T - B / 3, w * S + np.conj(w) * T - B / 3, np.conj(w) * S + w * T - B / 3],
+            axis=-1,
+        )
+        m = np.take_along_axis(ms, np.argmax(ms.real, axis=-1)[:, None], axis=-1)[:, 0]
+        sm = np.sqrt(2 * m)
+        out = []
+        for s1 in (1, -1):
+            inner = np.sqrt(-(2 * p + 2 * m + s1 * math.sqrt(2) * q / np.sqrt(m)))
+            for s2 in (1, -1):
+                out.append((s1 * sm + s2 * inner) / 2 + shift)
+        gen = np.stack(out, axis=-1)
+    return np.where((np.abs(q) < 1e-14)[:, None], biq, gen)
+
+
+def p3p_depths_batch(rays: np.ndarray, sides: np.ndarray) -> np.ndarray:
+    """`p3p_depths` for ``N`` problems at once (numpy): ``rays (N, 3, 3)``, ``sides (3,)`` or
+    ``(N, 3)`` -> ``(N, 4, 3)`` depths, NaN rows where a quartic root gives no solution (not
+    real, depths not positive, residual too large, or a repeat of an earlier root)."""
+    r = np.asarray(rays, dtype=float)
+    n = r.shape[0]
+    sd = np.broadcast_to(np.asarray(sides, dtype=float), (n, 3))
+    norms = np.linalg.norm(r, axis=-1)  # (N, 3)
+    j = r / norms[..., None]
+    cos_a = np.sum(j[:, 1] * j[:, 2], axis=-1)
+    cos_b = np.sum(j[:, 0] * j[:, 2], axis=-1)
+    cos_g = np.sum(j[:, 0] * j[:, 1], axis=-1)
+    lc, lb, la = sd[:, 0], sd[:, 1], sd[:, 2]
+    a2, b2, c2 = la * la, lb * lb, lc * lc
+    amc = (a2 - c2) / b2
+    apc = (a2 + c2) / b2
+    A = np.stack(
+        [
+            (amc - 1) ** 2 - 4 * c2 / b2 * cos_a**2,
+            4
+            * (
+                amc * (1 - amc) * cos_b - (1 - apc) * cos_a * cos_g + 2 * c2 / b2 * cos_a**2 * cos_b
+            ),
+            2
+            * (
+                amc**2
+                - 1
+                + 2 * amc**2 * cos_b**2
+                + 2 * (b2 - c2) / b2 * cos_a**2
+                - 4 * apc * cos_a * cos_b * cos_g
+                + 2 * (b2 - a2) / b2 * cos_g**2
+            ),
+            4
+            * (
+                -amc * (1 + amc) * cos_b
+                + 2 * a2 / b2 * cos_g**2 * cos_b
+                - (1 - apc) * cos_a * cos_g
+            ),
+            (1 + amc) ** 2 - 4 * a2 / b2 * cos_g**2,
+        ],
+        axis=-1,
+    )
+    ok_quartic = np.abs(A[:, 0]) >= 1e-300
+    A = np.where(ok_quartic[:, None], A, 1.0)
+    roots = quartic_roots_batch(A)  # (N, 4)
+    v = roots.real
+    ok = ok_quartic[:, None] & (np.abs(roots.imag) <= 1e-3 * np.maximum(1.0, np.abs(v)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = 2 * (cos_g[:, None] - v * cos_a[:, None])
+        q = 1 + v * v - 2 * v * cos_b[:, None]
+        u = ((-1 + amc[:, None]) * v * v - 2 * (amc * cos_b)[:, None] * v + 1 + amc[:, None]) / den
+        s1 = np.sqrt(b2[:, None] / q)
+    ok &= (v > 0) & (np.abs(den) >= 1e-12) & (q > 0) & (u > 0)
+    d0 = np.stack([s1 / norms[:, :1], u * s1 / norms[:, 1:2], v * s1 / norms[:, 2:3]], axis=-1)
+    d0 = np.where(ok[..., None], d0, 1.0)
+    rr = np.broadcast_to(r[:, None], (n, 4, 3, 3))
+    ss = np.broadcast_to(sd[:, None], (n, 4, 3))
+    d = d0
+    for _ in range(3):  # Newton (3x3); the closed-form roots are already close
+        lens, J = _depth_jacobian(d, rr)
+        F = lens - ss
+        det_ok = np.abs(np.linalg.det(J)) > 1e-300
+        Js = np.where(det_ok[..., None, None], J, np.eye(3))
+        d = np.where(det_ok[..., None], d - np.linalg.solve(Js, F[..., None])[..., 0], d)
+    res = np.linalg.norm(depth_residual(d, rr, ss), axis=-1)
+    scale = sd.max(axis=-1)[:, None]
+    ok &= (res <= 1e-7 * scale) & (d.min(axis=-1) > 0)
+    for k in range(1, 4):  # repeats of an earlier kept root (a split double root)
+        for i in range(k):
+            same = ok[:, i] & (np.linalg.norm(d[:, k] - d[:, i], axis=-1) <= 1e-5 * scale[:, 0])
+            ok[:, k] &= ~same
+    return np.where(ok[..., None], d, np.nan)
+
+
+def depth_candidates_batch(
+    points_px: np.ndarray, K: np.ndarray, sides: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The closed-form depth solve and the multiple-solution check of `solve_bracket` for ``N``
+    frames at once (numpy; no least-squares fallback: a frame without a real solution has no
+    candidate).
+
+    Args:
+        points_px: ``(N, 4, 2)`` rows ``p1, p2, p3, p4``.
+        K: 3x3 intrinsics; sides: ``l12, l15, l25`` (3,) [m].
+
+    Returns:
+        ``(N, 4, 3)`` admissible depths (NaN rows otherwise) and ``(N, 4, 2)`` where the strut
+        ends fall on the reconstructed struts ``P1P5``, ``P2P5`` (fractions).
+    """
+    pts = np.asarray(points_px, dtype=float)
+    p5, _ = strut_apex(pts)
+    img = np.stack([pts[:, 0], pts[:, 1], p5], axis=1)
+    rays = _homog(img) @ np.linalg.inv(K).T
+    rays = rays / rays[..., 2:3]
+    cands = p3p_depths_batch(rays, sides)  # (N, 4, 3)
+    u4, u3 = p5 - pts[:, 0], p5 - pts[:, 1]
+    lam4 = (np.sum((pts[:, 3] - pts[:, 0]) * u4, axis=-1) / np.sum(u4 * u4, axis=-1))[:, None]
+    lam3 = (np.sum((pts[:, 2] - pts[:, 1]) * u3, axis=-1) / np.sum(u3 * u3, axis=-1))[:, None]
+    d1, d2, d5 = cands[..., 0], cands[..., 1], cands[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fr = np.stack(
+            [lam4 * d1 / (lam4 * d1 + (1 - lam4) * d5), lam3 * d2 / (lam3 * d2 + (1 - lam3) * d5)],
+            axis=-1,
+        )
+    ok = np.isfinite(d1) & np.all((fr > 0) & (fr < 1), axis=-1)
+    return np.where(ok[..., None], cands, np.nan), np.where(ok[..., None], fr, np.nan)
+
+
+def choose_depths(
+    cands: np.ndarray,
+    fractions: np.ndarray,
+    prior_depths: np.ndarray | None = None,
+    visible_fraction: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`solve_bracket`'s choice among admissible candidates, for ``N`` frames at once: the one
+    nearest the prior (rows of ``prior_depths`` that are NaN: no prior), else the one whose
+    strut ends are nearest ``visible_fraction``, else the first.
+
+    Args:
+        cands, fractions: from `depth_candidates_batch`.
+        prior_depths: ``(N, 3)`` or None.
+
+    Returns:
+        ``(N, 3)`` depths (NaN where no admissible candidate) and ``(N,)`` admissible counts.
+    """
+    ok = np.isfinite(cands[..., 0])
+    n = ok.shape[0]
+    has_prior = np.zeros(n, bool)
+    score = np.zeros(ok.shape)
+    if prior_depths is not None:
+        prior = np.asarray(prior_depths, dtype=float)
+        has_prior = np.isfinite(prior[:, 0])
+        dist = np.linalg.norm(cands - prior[:, None, :], axis=-1)
+        score = np.where(has_prior[:, None], dist, 0.0)
+    if visible_fraction is not None:
+        frac = np.sum(np.abs(fractions - visible_fraction), axis=-1)
+        score = np.where(has_prior[:, None], score, frac)
+    best = np.argmin(np.where(ok, score, np.inf), axis=-1)
+    count = ok.sum(axis=-1)
+    depths = cands[np.arange(n), best]
+    return np.where((count > 0)[:, None], depths, np.nan), count
 
 
 def ant_colony_depths(
@@ -626,35 +824,65 @@ def pose_covariance(
     return 0.5 * (C + C.T)
 
 
-def _strut_fractions(depths: np.ndarray, rays: np.ndarray, ends: np.ndarray) -> list[float]:
-    """Where the rays of the strut ends ``p4`` and ``p3`` meet the reconstructed struts ``P1P5``
-    and ``P2P5`` (fraction from ``P1`` / ``P2``; -1 when the meeting point is behind the camera).
+def pose_information_bound(
+    cam_from_target: Rigid3,
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    fraction: float,
+    sigma_px: float,
+    known_ends: bool = False,
+    step: float = 1e-6,
+) -> np.ndarray:
+    """Cramer-Rao bound of the pose from one image of the bracket.
+
+    The measurements are the four image points ``p1, p2, p3, p4`` with white noise
+    ``sigma_px``; the unknowns are the pose, the vertices (a Gaussian prior of standard
+    deviation ``geometry.vertex_sigma_m`` per coordinate about the nominal ones, omitted when
+    zero) and, unless ``known_ends``, where ``p3``, ``p4`` lie along their struts (a real image
+    does not tell: the paper's information). With ``known_ends`` the strut ends are model
+    points at ``fraction`` (more than the paper uses). No unbiased per-frame estimator on these
+    measurements has a smaller covariance; the pose is exactly determined by the paper's
+    information, so there the bound equals the first-order covariance of our solver.
 
     Args:
-        depths: ``d1, d2, d5``; rays: (3, 3) rows ``[k_x, k_y, 1]`` of ``p1, p2, p5``;
-        ends: (2, 3) normalised rays of ``p4`` and ``p3``.
+        cam_from_target: the true ``left_cam_from_target``.
+        geometry: nominal vertices and their error.
+        K: 3x3 intrinsics; fraction: where the strut ends are (``P1 + fraction (P5 - P1)``).
+        sigma_px: image noise per coordinate [px].
+        known_ends: treat the strut ends as known model points.
+        step: central-difference step of every parameter [rad, m, 1].
+
+    Returns:
+        6x6 bound over ``[rotation (rad), translation (m)]`` with the rotation error as a
+        camera-frame rotation vector (``R_est = Exp(e) R_true``) and the translation error as
+        ``t_est - t_true`` (camera frame).
     """
-    d = depths.tolist()
-    r = rays.tolist()
-    P = [[d[i] * c for c in r[i]] for i in range(3)]
-    out = []
-    for start, w in ((0, ends[0].tolist()), (1, ends[1].tolist())):
-        # Closest points of the ray lam * w and the line P_s + s (P5 - P_s): 2x2 normal equations.
-        e = [P[2][k] - P[start][k] for k in range(3)]
-        o = P[start]
-        ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
-        we = w[0] * e[0] + w[1] * e[1] + w[2] * e[2]
-        ee = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
-        wo = w[0] * o[0] + w[1] * o[1] + w[2] * o[2]
-        eo = e[0] * o[0] + e[1] * o[1] + e[2] * o[2]
-        det = ww * ee - we * we
-        if abs(det) < 1e-300:
-            out.append(-1.0)
-            continue
-        lam = (wo * ee - we * eo) / det
-        frac = (wo * we - ww * eo) / det
-        out.append(frac if lam > 0 else -1.0)
-    return out
+    use_vertices = geometry.vertex_sigma_m > 0
+    n = 6 + (0 if known_ends else 2) + (9 if use_vertices else 0)
+    R0 = cam_from_target.R
+    t0 = cam_from_target.t
+    v0 = geometry.vertices_m
+
+    def h(theta: np.ndarray) -> np.ndarray:  # (m, n) -> (m, 8)
+        m = theta.shape[0]
+        R = np.einsum("mij,jk->mik", rotvec_to_matrix(theta[:, :3]), R0)
+        t = t0 + theta[:, 3:6]
+        s = np.full((m, 2), fraction) if known_ends else fraction + theta[:, 6:8]
+        v = v0 + (theta[:, -9:].reshape(m, 3, 3) if use_vertices else np.zeros((m, 3, 3)))
+        P3 = v[:, 1] + s[:, :1] * (v[:, 2] - v[:, 1])
+        P4 = v[:, 0] + s[:, 1:] * (v[:, 2] - v[:, 0])
+        P = np.stack([v[:, 0], v[:, 1], P3, P4], axis=1)  # (m, 4, 3)
+        pc = np.einsum("mij,mkj->mki", R, P) + t[:, None, :]
+        uv = pc @ np.asarray(K, dtype=float).T
+        return (uv[..., :2] / uv[..., 2:3]).reshape(m, 8)
+
+    E = np.eye(n) * step
+    H = ((h(E) - h(-E)) / (2 * step)).T  # (8, n)
+    J = H.T @ H / sigma_px**2
+    if use_vertices:
+        J[-9:, -9:] += np.eye(9) / geometry.vertex_sigma_m**2
+    C = np.linalg.inv(J)[:6, :6]
+    return 0.5 * (C + C.T)
 
 
 def solve_bracket(
@@ -705,10 +933,16 @@ def solve_bracket(
     sides = geometry.sides_m
     c0 = time.process_time()
     if cfg.solver == "closed-form":
-        ends = _homog(pts[[3, 2]]) @ K_inv.T
-        cands = p3p_depths(rays, sides)
+        # Where the strut ends lie on the image lines p1 -> p5 and p2 -> p5 (p5 is their
+        # intersection, so p4 and p3 are on them exactly).
+        (x1, y1), (x2, y2), (x3, y3), (x4, y4) = pts.tolist()
+        x5, y5 = p5.tolist()
+        lam4 = ((x4 - x1) * (x5 - x1) + (y4 - y1) * (y5 - y1)) / ((x5 - x1) ** 2 + (y5 - y1) ** 2)
+        lam3 = ((x3 - x2) * (x5 - x2) + (y3 - y2) * (y5 - y2)) / ((x5 - x2) ** 2 + (y5 - y2) ** 2)
+        l12, l15, l25 = sides.tolist()
+        cands = _p3p_scalar(rays.tolist(), (l12, l15, l25))
         selected_by = "unique"
-        if len(cands) == 0:
+        if not cands:
             # No exact solution (noise at a degenerate view): least squares from the prior or
             # from a fronto-parallel guess at the scale of the side P1P2.
             start = (
@@ -716,35 +950,45 @@ def solve_bracket(
                 if prior_depths is not None
                 else np.full(3, sides[0] / max(np.linalg.norm(rays[0] - rays[1]), 1e-9))
             )
-            cands = refine_depths(start[None, :], rays[None], sides[None], 30)
+            cands = refine_depths(start[None, :], rays[None], sides[None], 30).tolist()
             selected_by = "least-squares"
-        # Multiple-solution check. Admissible: the visible strut ends lie on the reconstructed
-        # struts (0 < fraction < 1).
-        fr = np.array([_strut_fractions(d, rays, ends) for d in cands]).reshape(-1, 2)
-        ok = np.all((fr > 0) & (fr < 1), axis=1) & (cands.min(axis=1) > 0)
+        # Multiple-solution check. Admissible: positive depths and the visible strut ends on
+        # the reconstructed struts. The point P1 + s (P5 - P1) projects to the fraction
+        # lam = s d5 / ((1 - s) d1 + s d5) of the image segment p1 -> p5, so
+        # s = lam d1 / (lam d1 + (1 - lam) d5) (and likewise for P2P5).
+        fr = []
+        for d1, d2, d5 in cands:
+            s4 = lam4 * d1 / (lam4 * d1 + (1 - lam4) * d5)
+            s3 = lam3 * d2 / (lam3 * d2 + (1 - lam3) * d5)
+            ok = min(d1, d2, d5) > 0 and 0 < s4 < 1 and 0 < s3 < 1
+            fr.append((s4, s3) if ok else None)
+        admissible = [(c, f) for c, f in zip(cands, fr, strict=True) if f is not None]
         solve_s = time.process_time() - c0
-        if not np.any(ok):
+        if not admissible:
             return BracketResult(
                 pose=None,
                 candidates=0,
                 reason="no admissible depth solution: the strut ends do not fall on the struts",
                 solve_cpu_s=solve_s,
             )
-        cands, fr = cands[ok], fr[ok]
-        n_cand = len(cands)
+        n_cand = len(admissible)
         if n_cand == 1:
             best = 0
         elif prior_depths is not None:
-            rel = np.linalg.norm(cands - prior_depths, axis=1)
-            best = int(np.argmin(rel))
+            q = [float(x) for x in prior_depths]
+            best = min(range(n_cand), key=lambda i: math.dist(admissible[i][0], q))
             selected_by = "prior"
         elif geometry.visible_fraction is not None:
-            best = int(np.argmin(np.abs(fr - geometry.visible_fraction).sum(axis=1)))
+            vf = geometry.visible_fraction
+            best = min(
+                range(n_cand),
+                key=lambda i: abs(admissible[i][1][0] - vf) + abs(admissible[i][1][1] - vf),
+            )
             selected_by = "fraction"
         else:
             best = 0
             selected_by = "first"
-        d = cands[best]
+        d = np.array(admissible[best][0])
     else:
         generator = np.random.default_rng(0) if rng is None else rng
         if prior_depths is None:

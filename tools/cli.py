@@ -377,11 +377,18 @@ def _register_bracket(subparsers: Any) -> None:
     register(subparsers)
 
 
+def _register_rings(subparsers: Any) -> None:
+    from satpose.tools.rings_cli import register
+
+    register(subparsers)
+
+
 EXTRA_COMMANDS: list[Callable[[Any], None]] = [
     colmap_cli.register,
     spin_cli.register,
     _register_stars,
     _register_bracket,
+    _register_rings,
 ]
 
 

@@ -27,8 +27,12 @@ from satpose.frontend.bracket import (
     absolute_orientation,
     ant_colony_depths,
     bracket_image_points,
+    choose_depths,
+    depth_candidates_batch,
     p3p_depths,
+    pose_information_bound,
     quartic_roots,
+    quartic_roots_batch,
     simulate_observation,
     solve_bracket,
     strut_apex,
@@ -248,3 +252,51 @@ def test_singular_covariance_becomes_a_failure() -> None:
     singular = BracketResult(pose=r.pose, covariance=np.zeros((6, 6)))
     fm = to_frame_measurements(singular, 0, 0.0)
     assert fm.pose is None and "singular" in fm.failures[0]
+
+
+def test_batched_quartic_roots_match_the_scalar_ones() -> None:
+    rng = np.random.default_rng(11)
+    coeffs = rng.normal(size=(200, 5))
+    batch = quartic_roots_batch(coeffs)
+    for c, roots in zip(coeffs, batch, strict=True):
+        ref = np.sort_complex(np.roots(c))
+        # each numpy root has one of ours within 1e-6 (relative to the root's size)
+        gap = np.min(np.abs(ref[:, None] - roots[None, :]), axis=1)
+        assert np.all(gap <= 1e-6 * np.maximum(1.0, np.abs(ref)))
+
+
+def test_batched_depth_solve_equals_the_frame_by_frame_solver() -> None:
+    """Offline batch (candidates for all frames at once, then the choice by the previous frame)
+    gives the same depths as `solve_bracket` frame by frame, noise 1 px."""
+    rng = np.random.default_rng(12)
+    truth = paper_truth(paper_times(0.5))
+    obs = [simulate_observation(T, PAPER_VERTICES_M, K, 0.2, 1.0, rng) for T in truth]
+    cands, fr = depth_candidates_batch(np.array([o.points() for o in obs]), K, GEO.sides_m)
+    prior_row = np.full((1, 3), np.nan)
+    cfg = BracketConfig(covariance=False)
+    prior = None
+    for i, o in enumerate(obs):
+        d, count = choose_depths(cands[i : i + 1], fr[i : i + 1], prior_row, GEO.visible_fraction)
+        r = solve_bracket(o, GEO, K, cfg, prior_depths=prior)
+        assert r.depths_m is not None and count[0] == r.candidates
+        np.testing.assert_allclose(d[0], r.depths_m, atol=1e-9)
+        prior, prior_row = r.depths_m, d
+
+
+@pytest.mark.parametrize("vertex_sigma_m", [0.0, 0.004])
+def test_information_bound_equals_the_solver_covariance(vertex_sigma_m: float) -> None:
+    """Six image numbers fix six pose parameters: the Cramer-Rao bound with the strut ends'
+    positions unknown equals our solver's propagated covariance (ours is efficient), and
+    knowing the strut ends can only lower it."""
+    geo = replace(GEO, vertex_sigma_m=vertex_sigma_m)
+    for t in (3.0, 12.0, 18.0):
+        T = PaperMotion().cam_from_target(t)
+        obs = simulate_observation(T, PAPER_VERTICES_M, K, 0.2, 0.0, np.random.default_rng(0))
+        r = solve_bracket(replace(obs, sigma_px=1.0), geo, K, prior_depths=true_depths(T))
+        assert r.covariance is not None
+        A = np.kron(np.eye(2), T.R)  # right perturbation -> camera-frame (left) errors
+        cov = A @ r.covariance @ A.T
+        bound = pose_information_bound(T, geo, K, 0.2, 1.0)
+        np.testing.assert_allclose(np.diag(cov), np.diag(bound), rtol=1e-3)
+        known = pose_information_bound(T, geo, K, 0.2, 1.0, known_ends=True)
+        assert np.linalg.eigvalsh(bound - known).min() > -1e-12 * np.trace(bound)
