@@ -35,7 +35,7 @@ import cmath
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -425,6 +425,28 @@ def _newton_depths(
     return [d1, d2, d3], res
 
 
+def _grunert_coefficients(cos_a: Any, cos_b: Any, cos_g: Any, a2: Any, b2: Any, c2: Any) -> tuple:
+    """Grunert's quartic ``A4 v^4 + ... + A0`` in ``v = d5 / d1`` (Haralick et al. 1994, sec.
+    2.1) from the rays' cosines and the squared opposite sides; floats or numpy arrays."""
+    amc = (a2 - c2) / b2
+    apc = (a2 + c2) / b2
+    return (
+        (amc - 1) ** 2 - 4 * c2 / b2 * cos_a**2,
+        4 * (amc * (1 - amc) * cos_b - (1 - apc) * cos_a * cos_g + 2 * c2 / b2 * cos_a**2 * cos_b),
+        2
+        * (
+            amc**2
+            - 1
+            + 2 * amc**2 * cos_b**2
+            + 2 * (b2 - c2) / b2 * cos_a**2
+            - 4 * apc * cos_a * cos_b * cos_g
+            + 2 * (b2 - a2) / b2 * cos_g**2
+        ),
+        4 * (-amc * (1 + amc) * cos_b + 2 * a2 / b2 * cos_g**2 * cos_b - (1 - apc) * cos_a * cos_g),
+        (1 + amc) ** 2 - 4 * a2 / b2 * cos_g**2,
+    )
+
+
 def _p3p_scalar(r: list[list[float]], sides: tuple[float, float, float]) -> list[list[float]]:
     """`p3p_depths` on Python lists (rows ``[k_x, k_y, 1]``; sides ``l12, l15, l25``)."""
     norms = [math.sqrt(x * x + y * y + z * z) for x, y, z in r]
@@ -435,20 +457,8 @@ def _p3p_scalar(r: list[list[float]], sides: tuple[float, float, float]) -> list
     cos_b = j[0][0] * j[2][0] + j[0][1] * j[2][1] + j[0][2] * j[2][2]
     cos_g = j[0][0] * j[1][0] + j[0][1] * j[1][1] + j[0][2] * j[1][2]
     a2, b2, c2 = la * la, lb * lb, lc * lc
+    A4, A3, A2, A1, A0 = _grunert_coefficients(cos_a, cos_b, cos_g, a2, b2, c2)
     amc = (a2 - c2) / b2
-    apc = (a2 + c2) / b2
-    A4 = (amc - 1) ** 2 - 4 * c2 / b2 * cos_a**2
-    A3 = 4 * (amc * (1 - amc) * cos_b - (1 - apc) * cos_a * cos_g + 2 * c2 / b2 * cos_a**2 * cos_b)
-    A2 = 2 * (
-        amc**2
-        - 1
-        + 2 * amc**2 * cos_b**2
-        + 2 * (b2 - c2) / b2 * cos_a**2
-        - 4 * apc * cos_a * cos_b * cos_g
-        + 2 * (b2 - a2) / b2 * cos_g**2
-    )
-    A1 = 4 * (-amc * (1 + amc) * cos_b + 2 * a2 / b2 * cos_g**2 * cos_b - (1 - apc) * cos_a * cos_g)
-    A0 = (1 + amc) ** 2 - 4 * a2 / b2 * cos_g**2
     if abs(A4) < 1e-300:
         return []
     scale = max(sides)
@@ -546,34 +556,8 @@ def p3p_depths_batch(rays: np.ndarray, sides: np.ndarray) -> np.ndarray:
     cos_g = np.sum(j[:, 0] * j[:, 1], axis=-1)
     lc, lb, la = sd[:, 0], sd[:, 1], sd[:, 2]
     a2, b2, c2 = la * la, lb * lb, lc * lc
+    A = np.stack(_grunert_coefficients(cos_a, cos_b, cos_g, a2, b2, c2), axis=-1)
     amc = (a2 - c2) / b2
-    apc = (a2 + c2) / b2
-    A = np.stack(
-        [
-            (amc - 1) ** 2 - 4 * c2 / b2 * cos_a**2,
-            4
-            * (
-                amc * (1 - amc) * cos_b - (1 - apc) * cos_a * cos_g + 2 * c2 / b2 * cos_a**2 * cos_b
-            ),
-            2
-            * (
-                amc**2
-                - 1
-                + 2 * amc**2 * cos_b**2
-                + 2 * (b2 - c2) / b2 * cos_a**2
-                - 4 * apc * cos_a * cos_b * cos_g
-                + 2 * (b2 - a2) / b2 * cos_g**2
-            ),
-            4
-            * (
-                -amc * (1 + amc) * cos_b
-                + 2 * a2 / b2 * cos_g**2 * cos_b
-                - (1 - apc) * cos_a * cos_g
-            ),
-            (1 + amc) ** 2 - 4 * a2 / b2 * cos_g**2,
-        ],
-        axis=-1,
-    )
     ok_quartic = np.abs(A[:, 0]) >= 1e-300
     A = np.where(ok_quartic[:, None], A, 1.0)
     roots = quartic_roots_batch(A)  # (N, 4)
