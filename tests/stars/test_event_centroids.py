@@ -16,9 +16,11 @@ from satpose.frontend.stars import (
     _balanced_centroids,
     fit_moving_spots,
     ladder_levels,
+    level_sigma,
     matched_ladder_events,
     peak_on_events,
     pixel_passes,
+    stream_levels,
 )
 
 ARCSEC = math.pi / (180 * 3600)
@@ -45,6 +47,14 @@ def test_matched_ladder_events_keep_level_pairs() -> None:
     np.testing.assert_array_equal(
         ladder_levels(p2, pixel_passes(t2, z, z, p2, edge_s=0.0)), [1, 2, 1, 2, 1, 0]
     )
+
+
+def test_level_sigma_widens_levels_anchored_at_the_last_event() -> None:
+    # Integer levels are counted from rest at the start; half-integer ones from the rest the
+    # reference reaches after a pass, anywhere in (L0, L0 + C]: + C^2 / 12.
+    sig = level_sigma(np.array([0.0, 2.0, 2.5]), 0.25, 0.03)
+    np.testing.assert_allclose(sig[:2], [0.03, math.hypot(0.03, 0.06)], rtol=1e-12)
+    np.testing.assert_allclose(sig[2], math.sqrt(0.03**2 + 0.075**2 + 0.25**2 / 12), rtol=1e-12)
 
 
 CAM = star_camera(96, 64, 3.0)  # 1833 px/rad, about the 640 px 20 deg sensor's scale
@@ -189,3 +199,16 @@ def test_ladder_levels_match_the_log_intensity() -> None:
     dL = np.log1p(flux * g(ev.x - sx) * g(ev.y - sy) / PHOT.background_e_s)
     assert len(ev) > 500
     np.testing.assert_allclose(lv * 0.2, dL, atol=0.02)
+
+
+def test_stream_levels_equal_the_pass_analysis(spot_run: tuple[StarCatalogue, Events]) -> None:
+    # The tracker's one-sort whole-stream step gives exactly the levels and peak-ON flags of
+    # ladder_levels(pixel_passes(...)) and peak_on_events, including the pixels anchored at
+    # their last event (lit at the start) and the unanchored ones (NaN).
+    _, ev = spot_run
+    passes = pixel_passes(ev.t_s, ev.x, ev.y, ev.p)
+    levels, peak = stream_levels(ev.t_s, ev.x, ev.y, ev.p)
+    expected = ladder_levels(ev.p, passes)
+    assert passes.pixel_cut_start.any() and np.isnan(expected).any()
+    np.testing.assert_array_equal(levels, expected)
+    np.testing.assert_array_equal(peak, peak_on_events(ev.x, ev.y, ev.p))

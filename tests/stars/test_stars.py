@@ -196,3 +196,30 @@ def test_rotation_graph_against_truth() -> None:
     est2 = online.estimate()
     err2 = matrix_to_rotvec(np.einsum("nji,njk->nik", truth, est2.R))
     assert np.sqrt(np.mean(err2**2, axis=0))[0] / ARCSEC < 8.0 / 3
+
+
+def test_tracker_catalogue_cone_matches_the_whole_catalogue() -> None:
+    # Tracking projects only the catalogue cone around the last boresight (recomputed after
+    # it moves by more than a margin); the stars in view must be those of the whole catalogue.
+    from satpose.frontend.stars import StarTracker
+
+    cam = star_camera(640, 480, 20.0)
+    tracker = StarTracker(cam)
+    full = StarTracker(cam)
+    full._cone_cos_radius = -1.0  # the whole sky, recomputed every time
+    full._cone_cos_margin = 2.0
+    rng = np.random.default_rng(4)
+    R = random_rotation(rng)
+    recomputed = []
+    for step_deg in (0.0, 0.5, 1.0, 1.5, 3.0, 10.0, 90.0):
+        R = R @ rotvec_to_matrix(math.radians(step_deg) * np.array([0.6, 0.8, 0.0]))
+        axis = tracker._cone_axis
+        rows, px = tracker.predicted_stars(R)
+        recomputed.append(tracker._cone_axis is not axis)
+        rows_all, px_all = full.predicted_stars(R)
+        assert rows.size > 5
+        np.testing.assert_array_equal(rows, rows_all)
+        np.testing.assert_allclose(px, px_all, atol=1e-9)
+    # Kept while the boresight stays within the 2 deg margin (0.5, 1.0, 1.5 deg steps: 3 deg
+    # in all, recomputed once on the way), recomputed after the large steps.
+    assert recomputed[0] and recomputed[-1] and recomputed[-2] and not all(recomputed)
