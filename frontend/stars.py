@@ -150,13 +150,17 @@ def peak_on_events(x: np.ndarray, y: np.ndarray, p: np.ndarray) -> np.ndarray:
     tens of milliseconds later, so this runs on the whole stream (`run_event_tracker`), not
     per window: an online system would know a peak only once that OFF event has arrived.
     """
-    pix = y.astype(np.int64) * 65536 + x.astype(np.int64)
-    order = np.argsort(pix, kind="stable")  # time order kept within a pixel
-    ps, pp = pix[order], p[order]
-    peak_sorted = np.zeros(order.size, dtype=bool)
-    peak_sorted[:-1] = (ps[:-1] == ps[1:]) & (pp[:-1] == 1) & (pp[1:] == 0)
+    order = np.lexsort((np.asarray(x), np.asarray(y)))  # time order kept within a pixel
+    ps = np.asarray(y)[order].astype(np.int32) * 65536 + np.asarray(x)[order]
     peak = np.zeros(order.size, dtype=bool)
-    peak[order] = peak_sorted
+    peak[order] = _peaks_sorted(ps, np.asarray(p)[order])
+    return peak
+
+
+def _peaks_sorted(pix: np.ndarray, pol: np.ndarray) -> np.ndarray:
+    """`peak_on_events` on events sorted by pixel (time order kept within a pixel)."""
+    peak = np.zeros(pix.size, dtype=bool)
+    peak[:-1] = (pix[:-1] == pix[1:]) & (pol[:-1] == 1) & (pol[1:] == 0)
     return peak
 
 
@@ -217,6 +221,9 @@ class _SortedPasses:
     first_ev: np.ndarray  # first sorted position of each pixel
     last_ev: np.ndarray
     net: np.ndarray  # polarity sum so far, sorted order
+    run_of: np.ndarray  # sorted position -> run index
+    pixel_cut: np.ndarray  # per pixel: its first run is cut_start
+    pixel_open: np.ndarray  # per pixel: its last run is open_end
     edge_s: float
 
 
@@ -263,6 +270,7 @@ def _sorted_passes(
     first_ev = np.flatnonzero(pix_start)
     net = cs - (cs[first_ev] - sgn[first_ev])[pix_id]
     last_ev = np.append(first_ev[1:], n_ev) - 1
+    run_of = np.cumsum(new_run, dtype=np.int32) - 1
     return _SortedPasses(
         order,
         ps,
@@ -278,6 +286,9 @@ def _sorted_passes(
         first_ev,
         last_ev,
         net,
+        run_of,
+        cut_start[run_of[first_ev]],
+        open_end[run_of[last_ev]],
         float(edge_s),
     )
 
@@ -299,13 +310,10 @@ def pixel_passes(
     partner = np.zeros(s.starts.size, dtype=np.int32)
     partner[:-1] = np.where(s.on_then_off[:-1], s.length[1:], 0)
     partner[1:] += np.where(s.on_then_off[:-1], s.length[:-1], 0)
-    run_sorted = np.cumsum(s.new_run, dtype=np.int32) - 1
-    pix_cut = s.cut_start[run_sorted[s.first_ev]]
-    pix_open = s.open_end[run_sorted[s.last_ev]]
     # Back to the events' order: each event's run and its index in the sorted order.
     rank = np.empty(n_ev, dtype=np.int32)
     rank[s.order] = np.arange(n_ev, dtype=np.int32)
-    run = run_sorted[rank]
+    run = s.run_of[rank]
     pid = s.pix_id[rank]
     return PixelPasses(
         pos=rank - s.starts[run],
@@ -316,8 +324,8 @@ def pixel_passes(
         open_end=s.open_end[run],
         net=s.net[rank],
         net_last=s.net[s.last_ev][pid],
-        pixel_cut_start=pix_cut[pid],
-        pixel_open_end=pix_open[pid],
+        pixel_cut_start=s.pixel_cut[pid],
+        pixel_open_end=s.pixel_open[pid],
         edge_s=s.edge_s,
     )
 
@@ -334,17 +342,11 @@ def stream_levels(
     if n_ev == 0:
         return np.zeros(0), np.zeros(0, dtype=bool)
     s = _sorted_passes(t_s, x, y, p, edge_s)
-    run_sorted = np.cumsum(s.new_run, dtype=np.int32) - 1
-    pix_cut = s.cut_start[run_sorted[s.first_ev]]
-    pix_open = s.open_end[run_sorted[s.last_ev]]
-    lvl_pix = np.where(pix_cut, 0.5 - s.net[s.last_ev], 0.0)
-    lvl_pix[pix_cut & pix_open] = np.nan
+    offset = _level_offset(s.pixel_cut, s.pixel_open, s.net[s.last_ev])
     levels = np.empty(n_ev)
-    levels[s.order] = s.net + lvl_pix[s.pix_id]
-    peak_sorted = np.zeros(n_ev, dtype=bool)
-    peak_sorted[:-1] = (s.pix[:-1] == s.pix[1:]) & (s.pol[:-1] == 1) & (s.pol[1:] == 0)
+    levels[s.order] = s.net + offset[s.pix_id]
     peak = np.empty(n_ev, dtype=bool)
-    peak[s.order] = peak_sorted
+    peak[s.order] = _peaks_sorted(s.pix, s.pol)
     return levels, peak
 
 
@@ -406,9 +408,15 @@ def ladder_levels(p: np.ndarray, passes: PixelPasses) -> np.ndarray:
     run is also open-ended there is no anchor: NaN (the fit leaves them out).
     """
     del p  # the polarity is in the sums
-    lvl = passes.net.astype(float)
-    lvl = np.where(passes.pixel_cut_start, lvl - passes.net_last + 0.5, lvl)
-    return np.where(passes.pixel_cut_start & passes.pixel_open_end, np.nan, lvl)
+    offset = _level_offset(passes.pixel_cut_start, passes.pixel_open_end, passes.net_last)
+    return passes.net + offset
+
+
+def _level_offset(cut_start: np.ndarray, open_end: np.ndarray, net_last: np.ndarray) -> np.ndarray:
+    """What `ladder_levels` adds to a pixel's polarity sum: 0 for a pixel at rest at the
+    start, ``1/2 - net_last`` for one anchored at its last event, NaN without an anchor."""
+    offset = np.where(cut_start, 0.5 - net_last, 0.0)
+    return np.where(cut_start & open_end, np.nan, offset)
 
 
 def _pixel_psf(u: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -798,7 +806,7 @@ class StarTracker:
         self._cone_unit = np.zeros((0, 3))
         self.sigma_rad = c.centroid_sigma_px / cam.fx
         self.history: list[tuple[float, np.ndarray]] = []
-        self._rate_key: tuple[float, float, int, int] | None = None
+        self._rate_src: tuple[np.ndarray, np.ndarray, float, float] | None = None
         self._rate = np.zeros(3)
 
     # ---- building blocks ------------------------------------------------------------------
@@ -868,10 +876,10 @@ class StarTracker:
             return np.zeros(3)
         k = max(0, len(self.history) - 1 - self.config.rate_history)
         (t0, R0), (t1, R1) = self.history[k], self.history[-1]
-        key = (t0, t1, id(R0), id(R1))
-        if self._rate_key != key:  # once per output (predict, span, gate, motion all ask)
+        src = self._rate_src  # once per output (predict, span, gate, motion all ask)
+        if src is None or src[0] is not R0 or src[1] is not R1 or (src[2], src[3]) != (t0, t1):
             self._rate = matrix_to_rotvec(R0.T @ R1) / (t1 - t0) if t1 > t0 else np.zeros(3)
-            self._rate_key = key
+            self._rate_src = (R0, R1, t0, t1)  # holds the arrays: their ids stay theirs
         return self._rate
 
     def integration_s(self) -> float:
@@ -1014,14 +1022,12 @@ class StarTracker:
         label = np.zeros(cam.height * cam.width, dtype=np.int64)
         star = np.broadcast_to(np.arange(1, rows.size + 1)[:, None, None], X.shape)
         label[(Y * cam.width + X)[inside]] = star[inside]
-        gi = np.flatnonzero(
-            label[events.y.astype(np.int64) * cam.width + events.x.astype(np.int64)]
-        )
+        lab_all = label[events.y.astype(np.int64) * cam.width + events.x.astype(np.int64)]
         # The gated events only, from here on (a star's events are a small share of a
         # window's at fast slews).
-        ex, ey = events.x[gi].astype(np.int64), events.y[gi].astype(np.int64)
-        lab = label[ey * cam.width + ex]
-        ex_f, ey_f = ex.astype(float), ey.astype(float)
+        gi = np.flatnonzero(lab_all)
+        lab = lab_all[gi]
+        ex_f, ey_f = events.x[gi].astype(float), events.y[gi].astype(float)
         et = events.t_us[gi] * 1e-6
         ep = events.p[gi]
         hit = np.ones(gi.size, dtype=bool) if selected is None else selected[gi]
