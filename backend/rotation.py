@@ -19,6 +19,8 @@ body rate ``W(i)`` (camera frame, rad/s, ``Vector3``). Factors:
 
 from __future__ import annotations
 
+import bisect
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -71,6 +73,12 @@ class AttitudeWindow:
         cov: its 3x3 covariance [rad^2] (right perturbation).
         rel_R: ``cam_prev_from_cam_this`` relative to the previous window, or None.
         rel_cov: its 3x3 covariance.
+        t_meas_s: the time ``R`` refers to when that is not ``t_s`` (an event output's data
+            centre on an earlier time than the output, `AttitudeSolution.data_t_s`): the
+            prior goes on the window nearest that time, moved by its rate.
+        rate_rad_s, rate_info: a body-rate measurement at ``t_meas_s`` (else ``t_s``) and
+            its 3x3 information [(rad/s)^-2] (an event output's shared-rate fit, prior
+            removed): a prior on that window's rate.
     """
 
     t_s: float
@@ -78,6 +86,9 @@ class AttitudeWindow:
     cov: np.ndarray | None = None
     rel_R: np.ndarray | None = None
     rel_cov: np.ndarray | None = None
+    t_meas_s: float | None = None
+    rate_rad_s: np.ndarray | None = None
+    rate_info: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -123,21 +134,64 @@ def constant_rate_factor(i: int, j: int, dt: float, q: float) -> gtsam.CustomFac
     )
 
 
+def attitude_at_factor(j: int, tau: float, R_meas: np.ndarray, cov: np.ndarray) -> Any:
+    """Absolute attitude ``R_meas`` measured ``tau`` seconds after window ``j``, on
+    ``(Q(j), W(j))``: ``e = Log(R_meas^T R_j Exp(w_j tau))`` (a `PriorFactorRot3` on ``Q(j)``
+    when ``tau`` is 0). Jacobians with ``E = Exp(w_j tau)``: ``de/dR_j = J_r^-1(e) E^T``,
+    ``de/dw_j = J_r^-1(e) J_r(w_j tau) tau``."""
+    noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float))
+    if tau == 0.0:
+        return gtsam.PriorFactorRot3(Q(j), gtsam.Rot3(R_meas), noise)
+    Rm_inv = gtsam.Rot3(R_meas).inverse()
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
+        k = this.keys()
+        Rj, wj = values.atRot3(k[0]), values.atVector(k[1])
+        E = gtsam.Rot3.Expmap(wj * tau)
+        e = gtsam.Rot3.Logmap(Rm_inv.compose(Rj).compose(E))
+        if H is not None:
+            Jinv = gtsam.Rot3.LogmapDerivative(e)
+            H[0] = np.asfortranarray(Jinv @ E.matrix().T)
+            H[1] = np.asfortranarray(Jinv @ gtsam.Rot3.ExpmapDerivative(wj * tau) * tau)
+        return e
+
+    return gtsam.CustomFactor(noise, [Q(j), W(j)], error)
+
+
+def _nearest(times: Sequence[float], t: float, k: int) -> int:
+    """Index ``<= k`` of the window time nearest ``t`` (``times`` increasing)."""
+    i = bisect.bisect_left(times, t, 0, k + 1)
+    return min((c for c in (i - 1, i) if 0 <= c <= k), key=lambda c: abs(times[c] - t))
+
+
 def _window_factors(
     graph: gtsam.NonlinearFactorGraph,
     k: int,
     win: AttitudeWindow,
-    prev_t: float | None,
+    times: Sequence[float],
     config: RotationGraphConfig,
 ) -> None:
+    """Factors of window ``k`` (``times``: windows ``0..k``'s times, this one's included)."""
+    prev_t = float(times[k - 1]) if k else None
     if win.R is not None:
         if win.cov is None:
             raise BackendError(f"window {k}: an absolute attitude needs its covariance")
-        graph.add(
-            gtsam.PriorFactorRot3(
-                Q(k), gtsam.Rot3(win.R), gtsam.noiseModel.Gaussian.Covariance(win.cov)
+        j, tau = k, 0.0
+        if win.t_meas_s is not None and win.t_meas_s != win.t_s:
+            j = _nearest(times, win.t_meas_s, k)
+            tau = float(win.t_meas_s - times[j])
+        graph.add(attitude_at_factor(j, tau, win.R, win.cov))
+        if win.rate_rad_s is not None and win.rate_info is not None:
+            # (A tiny floor keeps the information positive definite when the span's events
+            # say nothing about one axis; the rate is the window's, tau from the data.)
+            info = np.asarray(win.rate_info, float) + 1e-6 * np.eye(3)
+            graph.add(
+                gtsam.PriorFactorVector(
+                    W(j),
+                    np.asarray(win.rate_rad_s, float),
+                    gtsam.noiseModel.Gaussian.Information(info),
+                )
             )
-        )
     if prev_t is None:
         graph.add(
             gtsam.PriorFactorVector(
@@ -201,12 +255,13 @@ def smooth_attitudes(
     t = np.array([w.t_s for w in windows], float)
     if np.any(np.diff(t) <= 0):
         raise BackendError("window times must increase")
+    times = t.tolist()
     init_R = _initial(windows)
     init_w = _rates(t, init_R)
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     for k, w in enumerate(windows):
-        _window_factors(graph, k, w, t[k - 1] if k else None, config)
+        _window_factors(graph, k, w, times, config)
         values.insert(Q(k), gtsam.Rot3(init_R[k]))
         values.insert(W(k), init_w[k])
     params = gtsam.LevenbergMarquardtParams()
@@ -257,7 +312,8 @@ class OnlineAttitudeSmoother:
         for j, w in enumerate(batch):
             k = len(self.t)
             prev_t = self.t[-1] if self.t else None
-            _window_factors(graph, k, w, prev_t, self.config)
+            self.t.append(w.t_s)
+            _window_factors(graph, k, w, self.t, self.config)
             if inits is not None:
                 R0 = inits[j]
             else:
@@ -270,7 +326,6 @@ class OnlineAttitudeSmoother:
                 )
             values.insert(Q(k), gtsam.Rot3(R0))
             values.insert(W(k), self._last_w)
-            self.t.append(w.t_s)
             self._last_R = np.asarray(R0)
         self.isam.update(graph, values)
         est = self.isam.calculateEstimate()
@@ -304,6 +359,7 @@ __all__ = [
     "AttitudeWindow",
     "OnlineAttitudeSmoother",
     "RotationGraphConfig",
+    "attitude_at_factor",
     "constant_rate_factor",
     "nees",
     "smooth_attitudes",

@@ -450,6 +450,7 @@ class SpotFit:
             by the reduced chi-square of all the stars' residuals together.
         n: events used, (S,).
         ok: converged with enough events, (S,).
+        d_omega: the shared body-rate correction [rad/s] (zero unless fitted).
     """
 
     px: np.ndarray
@@ -457,6 +458,9 @@ class SpotFit:
     cov: np.ndarray
     n: np.ndarray
     ok: np.ndarray
+    d_omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    d_omega_data: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    d_omega_info: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
 
 def fit_moving_spots(
@@ -472,6 +476,8 @@ def fit_moving_spots(
     level_sigma: np.ndarray,
     iterations: int = 3,
     vel_sigma_px_s: float = 0.0,
+    rate_jac: np.ndarray | None = None,
+    rate_sigma: float = 0.0,
 ) -> SpotFit:
     """Fit moving Gaussian spots to events as level crossings (Gauss-Newton, all stars at once).
 
@@ -485,6 +491,13 @@ def fit_moving_spots(
     slew's). Residuals are weighted by ``1 / level_sigma`` with a Huber loss (noise events).
     Unlike a centroid of counts, this uses where every level was crossed, so a sub-pixel
     cross-track shift moves the crossing times even when it changes no pixel's event count.
+
+    With ``rate_jac`` (S, 2, 3), ``d vel_s / d omega`` [px/s per rad/s], and ``rate_sigma``
+    > 0 [rad/s] the stars share one correction ``d_omega`` of the body rate (prior sigma
+    ``rate_sigma`` around zero): ``vel_s + rate_jac_s d_omega``, solved with the stars'
+    unknowns eliminated (Schur complement); each star's ``cov`` is then its marginal.
+    A jitter whose rate differs from the rate predicted over many outputs moves the stars
+    within the span; one shared rate is 3 unknowns, per-star velocities 2 per star.
     """
     S = px0.shape[0]
     P = 5 if vel_sigma_px_s > 0 else 3
@@ -498,9 +511,16 @@ def fit_moving_spots(
     if P == 5:
         prior[3, 3] = prior[4, 4] = 1.0 / vel_sigma_px_s**2
 
-    def velocity() -> np.ndarray:
-        return state[:, 3:5] if P == 5 else v0
+    shared = rate_jac is not None and rate_sigma > 0 and P == 3
+    d_omega = np.zeros(3)
+    A = np.zeros((S, 2, 3)) if rate_jac is None else np.asarray(rate_jac, float)
 
+    def velocity() -> np.ndarray:
+        if P == 5:
+            return state[:, 3:5]
+        return v0 + A @ d_omega if shared else v0
+
+    fitted = cnt >= 4
     for _ in range(iterations):
         v = velocity()
         cx = state[lab, 0] + v[lab, 0] * dt
@@ -527,11 +547,34 @@ def fit_moving_spots(
         H += prior
         if P == 5:
             g[:, 3:5] += (state[:, 3:5] - v0) / vel_sigma_px_s**2
-        step = -np.linalg.solve(H + 1e-9 * np.eye(P), g[:, :, None])[:, :, 0]
+        Hinv = np.linalg.inv(H + 1e-9 * np.eye(P))
+        if shared:
+            # Event Jacobian on d_omega: (d r / d centre) . rate_jac_s * dt; eliminate the stars.
+            Jw = (jx[:, None] * A[lab, 0] + jy[:, None] * A[lab, 1]) * dt[:, None]
+            Jw[~fitted[lab]] = 0.0
+            Hso = np.zeros((S, 3, 3))
+            g_o = np.zeros(3)
+            H_oo = np.eye(3) / rate_sigma**2
+            for a in range(3):
+                g_o[a] = np.sum(w * Jw[:, a] * r) + d_omega[a] / rate_sigma**2
+                for i in range(3):
+                    Hso[:, i, a] = np.bincount(lab, weights=w * J[:, i] * Jw[:, a], minlength=S)
+                for b in range(a, 3):
+                    H_oo[a, b] = H_oo[b, a] = H_oo[a, b] + np.sum(w * Jw[:, a] * Jw[:, b])
+            Hso[~fitted] = 0.0
+            HiHso = Hinv @ Hso
+            red = H_oo - np.einsum("sia,sib->ab", Hso, HiHso)
+            g_red = g_o - np.einsum("sia,si->a", HiHso, g)
+            red_inv = np.linalg.inv(red)
+            dw = -red_inv @ g_red
+            step = -(Hinv @ (g[:, :, None] + Hso @ dw[:, None]))[:, :, 0]
+            d_omega += np.clip(dw, -3 * rate_sigma, 3 * rate_sigma)
+        else:
+            step = -(Hinv @ g[:, :, None])[:, :, 0]
         step[:, :2] = np.clip(step[:, :2], -0.5, 0.5)
         step[:, 2] = np.clip(step[:, 2], -1.0, 1.0)
-        state += np.where((cnt >= 4)[:, None], step, 0.0)
-    ok = (cnt >= 4) & np.all(np.isfinite(state), axis=1)
+        state += np.where(fitted[:, None], step, 0.0)
+    ok = fitted & np.all(np.isfinite(state), axis=1)
     ok &= np.all(np.abs(state[:, :2] - px0) < 1.5, axis=1)
     # Residuals at the solution: one chi-square scale for the window (per star it would rest
     # on a handful of events).
@@ -542,8 +585,22 @@ def fit_moving_spots(
     used = ok[lab]
     dof = int(used.sum()) - P * int(ok.sum())
     chi2 = float(np.sum((w * r * r)[used])) / dof if dof > 0 else 1.0
-    cov_full = np.linalg.inv(H + 1e-9 * np.eye(P)) * chi2
-    return SpotFit(state[:, :2], state[:, 2], cov_full[:, :2, :2], cnt, ok)
+    cov_full = np.linalg.inv(H + 1e-9 * np.eye(P))
+    if shared:
+        # Marginal of each star's unknowns with d_omega unknown too (last linearisation).
+        cov_full = cov_full + HiHso @ red_inv @ np.swapaxes(HiHso, 1, 2)
+    cov_full = cov_full * chi2
+    rate_info = np.zeros((3, 3))
+    d_data = np.zeros(3)
+    if shared:
+        # What the events alone say about the rate, prior taken out: at convergence
+        # (info + prior) d_omega = info d_data. Information chi-square scaled.
+        info = red - np.eye(3) / rate_sigma**2
+        d_data = np.linalg.lstsq(info, red @ d_omega, rcond=None)[0]
+        rate_info = info / chi2
+    return SpotFit(
+        state[:, :2], state[:, 2], cov_full[:, :2, :2], cnt, ok, d_omega, d_data, rate_info
+    )
 
 
 def _balanced_centroids(
@@ -705,6 +762,11 @@ class StarTrackerConfig:
             events.
         fit_velocity_sigma_px_s: > 0: the spot fit also fits each star's image velocity,
             with this prior sigma around the predicted one [px/s].
+        fit_rate_sigma_rad_s: > 0: where a tracking output's span is longer than 1.5
+            ``window_s``, the spot fit also fits one body rate shared by all stars, with
+            this prior sigma around the predicted rate [rad/s] (0.003: about the rate of
+            the 17 Hz, 10 arcsec jitter of the ``slew`` preset; 0.002-0.005 measured equal
+            at 0.1 deg/s, docs/stars.md); the output then carries the rate measurement.
         scale_by_residuals: multiply each Wahba covariance by the reduced chi-square of its
             residuals when that exceeds 1.
         mag_limit: faintest catalogue star predicted in tracking.
@@ -729,6 +791,7 @@ class StarTrackerConfig:
     fit_max_events: int = 24
     fit_max_stars: int = 40
     fit_velocity_sigma_px_s: float = 0.0
+    fit_rate_sigma_rad_s: float = 0.003
     scale_by_residuals: bool = True
     mag_limit: float = 7.5
     epoch_yr: float = 2026.9
@@ -764,6 +827,16 @@ class AttitudeSolution:
             which can be longer than the output period; frames: 0).
         stream_cpu_ms: this output's even share of the CPU time of the whole-stream event
             analysis (`run_event_tracker`: pass structure, levels, selection) [ms].
+        data_t_s: event tracking: the time the data behind ``R`` centre on (the weighted
+            mean time of the stars' events, weights as in Wahba), earlier than ``t_s`` by
+            up to the span; ``R`` is the attitude there moved to ``t_s`` by the predicted
+            rate (or the fitted one, ``fit_rate_sigma_rad_s``). A smoother should take
+            ``data_R`` at ``data_t_s``: a rate predicted from 0.4 s of outputs cannot follow
+            jitter faster than that. None: the data are at ``t_s``.
+        data_R: the attitude at ``data_t_s`` (None with it).
+        rate_meas_rad_s, rate_info: with ``fit_rate_sigma_rad_s``: the body rate the span's
+            events measure (`fit_moving_spots`' shared rate, prior removed) and its 3x3
+            information [(rad/s)^-2]; None otherwise.
     """
 
     t_s: float
@@ -775,6 +848,10 @@ class AttitudeSolution:
     cpu_ms: float = 0.0
     span_s: float = 0.0
     stream_cpu_ms: float = 0.0
+    data_t_s: float | None = None
+    data_R: np.ndarray | None = None
+    rate_meas_rad_s: np.ndarray | None = None
+    rate_info: np.ndarray | None = None
 
 
 class StarTracker:
@@ -1046,14 +1123,16 @@ class StarTracker:
         b_mid /= np.linalg.norm(b_mid, axis=1, keepdims=True)
         if levels is None or c.centroid != "spot_fit" or len(self.history) < 2:
             # (Without a rate the fit would take moving stars for still ones.)
-            return self._solve(t_mid, b_mid, self.cat.ids[rows[ok]], "tracking")
+            sol = self._solve(t_mid, b_mid, self.cat.ids[rows[ok]], "tracking")
+            return self._data_times(sol, lab[hit], et[hit], ok, np.ones(int(ok.sum())), w)
         # Moving-spot fit, started from the moved centroids, velocity from the predicted rate,
         # on the fit_max_stars stars with the most events (CPU per output bounded).
+        t_data = t_star[ok]
         if ok.sum() > c.fit_max_stars:
             keep_rows = np.flatnonzero(ok)[np.argsort(-cnt[ok], kind="stable")]
             sub = np.isin(np.flatnonzero(ok), keep_rows[: c.fit_max_stars])
             ok[np.flatnonzero(ok)[~sub]] = False
-            b_mid = b_mid[sub]
+            b_mid, t_data = b_mid[sub], t_data[sub]
         px_mid = b_mid[:, :2] / b_mid[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
         db = np.cross(b_mid, w)
         vel = (db[:, :2] * b_mid[:, 2:3] - b_mid[:, :2] * db[:, 2:3]) / b_mid[:, 2:3] ** 2
@@ -1076,6 +1155,10 @@ class StarTracker:
         g0 = float((2 * ndtr(0.5 / c.psf_sigma_px) - 1) ** 2)
         C = c.contrast_threshold
         log_flux0 = np.log(np.maximum(np.expm1((top + 0.5) * C), 1e-3) / g0)
+        # One body rate for the span's stars, fitted, where the span reaches back over more
+        # than one output (slow slews): within it jitter moves the stars at a rate the
+        # prediction (0.4 s of outputs) averages away.
+        shared_rate = c.fit_rate_sigma_rad_s > 0 and span_s > 1.5 * c.window_s
         fit = fit_moving_spots(
             li,
             ex_f[use],
@@ -1088,6 +1171,8 @@ class StarTracker:
             c.psf_sigma_px,
             level_sigma(lvl, c.contrast_threshold, c.threshold_sigma),
             vel_sigma_px_s=c.fit_velocity_sigma_px_s,
+            rate_jac=_velocity_rate_jacobian(b_mid, cam.fx, cam.fy),
+            rate_sigma=c.fit_rate_sigma_rad_s if shared_rate else 0.0,
         )
         # Fitted stars with the fit's own noise (mean of the two axes' variances, floored);
         # stars the fit could not take (fewer than 4 levelled events: most of them at
@@ -1098,7 +1183,53 @@ class StarTracker:
         b_use[good] = bearings(cam, fit.px[good])
         var = 0.5 * np.trace(fit.cov[good], axis1=1, axis2=2)
         sig[good] = np.sqrt(var + c.fit_sigma_floor_px**2) / cam.fx
-        return self._solve(t_mid, b_use, self.cat.ids[rows[ok]], "tracking", sig)
+        sol = self._solve(t_mid, b_use, self.cat.ids[rows[ok]], "tracking", sig)
+        if shared_rate and sol.R is not None:
+            # The fitted positions are at t_mid along the fitted rate: data_R goes back along
+            # it, and the output carries the span's own rate measurement.
+            sol = replace(sol, rate_meas_rad_s=w + fit.d_omega_data, rate_info=fit.d_omega_info)
+            w = w + fit.d_omega
+        return self._data_times(sol, lab[hit], et[hit], ok, sig**-2.0, w)
+
+    def _data_times(
+        self,
+        sol: AttitudeSolution,
+        lab: np.ndarray,
+        t: np.ndarray,
+        ok: np.ndarray,
+        weight: np.ndarray,
+        rate: np.ndarray,
+    ) -> AttitudeSolution:
+        """``sol`` with the time its data centre on (`AttitudeSolution.data_t_s`): each star
+        used (``ok``; events at ``t`` with 1-based labels ``lab``) spreads its Wahba
+        ``weight`` evenly over its events. ``data_R``: ``sol.R`` moved back there by the
+        body ``rate`` it was moved forward with."""
+        if sol.R is None:
+            return sol
+        star = np.full(ok.size + 1, -1, dtype=np.int64)
+        star[1:][ok] = np.arange(int(ok.sum()))
+        s = star[lab]
+        keep = s >= 0
+        s, t = s[keep], t[keep]
+        w_ev = weight[s] / np.bincount(s, minlength=weight.size)[s]
+        t_data = float(np.sum(w_ev * t) / np.sum(w_ev))
+        R_data = sol.R @ rotvec_to_matrix(rate * (t_data - sol.t_s))
+        return replace(sol, data_t_s=t_data, data_R=R_data)
+
+
+def _velocity_rate_jacobian(b: np.ndarray, fx: float, fy: float) -> np.ndarray:
+    """``d (pixel velocity) / d (body rate)`` of stars at bearings ``b`` (N, 2, 3): the
+    bearing moves as ``db/dt = b x w = [b]_x w``, the pixel as the projection's Jacobian."""
+    bx, by, bz = b[:, 0], b[:, 1], b[:, 2]
+    P = np.zeros((b.shape[0], 2, 3))
+    P[:, 0, 0] = fx / bz
+    P[:, 0, 2] = -fx * bx / bz**2
+    P[:, 1, 1] = fy / bz
+    P[:, 1, 2] = -fy * by / bz**2
+    skew = np.zeros((b.shape[0], 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -bz, by, -bx
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = bz, -by, bx
+    return P @ skew
 
 
 def _subset(events: Events, keep: np.ndarray) -> Events:

@@ -55,8 +55,9 @@ def windows_from_solutions(sols: list[AttitudeSolution], sigma_rad: float) -> li
 
     An event output integrates ``span_s`` of events but comes every ``t_i - t_{i-1}``: where
     the spans overlap, consecutive outputs share events, so their errors are not independent
-    as the graph assumes. Each absolute covariance is multiplied by the overlap
-    ``max(1, span / output period)`` (the number of outputs each event is in)."""
+    as the graph assumes. Each absolute covariance (and rate information, divided) is scaled
+    by the overlap ``max(1, span / output period)`` (the number of outputs each event is in).
+    The attitude goes in at the time its data centre on (``data_t_s``, ``data_R``)."""
     from satpose.backend.rotation import AttitudeWindow
 
     out = []
@@ -67,10 +68,22 @@ def windows_from_solutions(sols: list[AttitudeSolution], sigma_rad: float) -> li
             common, ia, ib = np.intersect1d(prev.star_ids, s.star_ids, return_indices=True)
             if common.size >= 3:
                 rel_R, rel_cov = relative_rotation_bearings(prev.b_cam[ia], s.b_cam[ib], sigma_rad)
-        cov = s.cov
-        if cov is not None and prev is not None and s.span_s > 0 and s.t_s > prev.t_s:
-            cov = cov * max(1.0, s.span_s / (s.t_s - prev.t_s))
-        out.append(AttitudeWindow(t_s=s.t_s, R=s.R, cov=cov, rel_R=rel_R, rel_cov=rel_cov))
+        overlap = 1.0
+        if prev is not None and s.span_s > 0 and s.t_s > prev.t_s:
+            overlap = max(1.0, s.span_s / (s.t_s - prev.t_s))
+        cov = None if s.cov is None else s.cov * overlap
+        out.append(
+            AttitudeWindow(
+                t_s=s.t_s,
+                R=s.R if s.data_R is None else s.data_R,
+                cov=cov,
+                rel_R=rel_R,
+                rel_cov=rel_cov,
+                t_meas_s=s.data_t_s,
+                rate_rad_s=s.rate_meas_rad_s,
+                rate_info=None if s.rate_info is None else s.rate_info / overlap,
+            )
+        )
         prev = s
     return out
 
