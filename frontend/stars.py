@@ -499,6 +499,8 @@ def fit_moving_spots(
     A jitter whose rate differs from the rate predicted over many outputs moves the stars
     within the span; one shared rate is 3 unknowns, per-star velocities 2 per star.
     """
+    if iterations < 1:
+        raise StarTrackerError("fit_moving_spots needs at least one iteration")
     S = px0.shape[0]
     P = 5 if vel_sigma_px_s > 0 else 3
     state = np.column_stack([px0, log_flux0, vel][:P] if P == 5 else [px0, log_flux0])
@@ -585,7 +587,7 @@ def fit_moving_spots(
     used = ok[lab]
     dof = int(used.sum()) - P * int(ok.sum())
     chi2 = float(np.sum((w * r * r)[used])) / dof if dof > 0 else 1.0
-    cov_full = np.linalg.inv(H + 1e-9 * np.eye(P))
+    cov_full = Hinv  # the last iteration's (H is not changed after it)
     if shared:
         # Marginal of each star's unknowns with d_omega unknown too (last linearisation).
         cov_full = cov_full + HiHso @ red_inv @ np.swapaxes(HiHso, 1, 2)
@@ -1124,22 +1126,20 @@ class StarTracker:
         if levels is None or c.centroid != "spot_fit" or len(self.history) < 2:
             # (Without a rate the fit would take moving stars for still ones.)
             sol = self._solve(t_mid, b_mid, self.cat.ids[rows[ok]], "tracking")
-            return self._data_times(sol, lab[hit], et[hit], ok, np.ones(int(ok.sum())), w)
+            ones = np.ones(int(ok.sum()))
+            return _at_data_time(sol, _compact_labels(ok)[lab[hit]], et[hit], ones, w)
         # Moving-spot fit, started from the moved centroids, velocity from the predicted rate,
         # on the fit_max_stars stars with the most events (CPU per output bounded).
-        t_data = t_star[ok]
         if ok.sum() > c.fit_max_stars:
             keep_rows = np.flatnonzero(ok)[np.argsort(-cnt[ok], kind="stable")]
             sub = np.isin(np.flatnonzero(ok), keep_rows[: c.fit_max_stars])
             ok[np.flatnonzero(ok)[~sub]] = False
-            b_mid, t_data = b_mid[sub], t_data[sub]
+            b_mid = b_mid[sub]
         px_mid = b_mid[:, :2] / b_mid[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
-        db = np.cross(b_mid, w)
-        vel = (db[:, :2] * b_mid[:, 2:3] - b_mid[:, :2] * db[:, 2:3]) / b_mid[:, 2:3] ** 2
-        vel *= [cam.fx, cam.fy]
-        new_lab = np.full(rows.size + 1, -1, dtype=np.int64)
-        new_lab[1:][ok] = np.arange(int(ok.sum()))
-        li = new_lab[lab]
+        vel_jac = _velocity_rate_jacobian(b_mid, cam.fx, cam.fy)
+        vel = vel_jac @ w
+        star_of = _compact_labels(ok)
+        li = star_of[lab]
         lvl_g = levels[gi]
         use = (li >= 0) & (lvl_g > 0)
         # At most about fit_max_events per star (a deterministic, evenly spread subset: the
@@ -1171,7 +1171,7 @@ class StarTracker:
             c.psf_sigma_px,
             level_sigma(lvl, c.contrast_threshold, c.threshold_sigma),
             vel_sigma_px_s=c.fit_velocity_sigma_px_s,
-            rate_jac=_velocity_rate_jacobian(b_mid, cam.fx, cam.fy),
+            rate_jac=vel_jac,
             rate_sigma=c.fit_rate_sigma_rad_s if shared_rate else 0.0,
         )
         # Fitted stars with the fit's own noise (mean of the two axes' variances, floored);
@@ -1189,32 +1189,32 @@ class StarTracker:
             # it, and the output carries the span's own rate measurement.
             sol = replace(sol, rate_meas_rad_s=w + fit.d_omega_data, rate_info=fit.d_omega_info)
             w = w + fit.d_omega
-        return self._data_times(sol, lab[hit], et[hit], ok, sig**-2.0, w)
+        return _at_data_time(sol, star_of[lab[hit]], et[hit], sig**-2.0, w)
 
-    def _data_times(
-        self,
-        sol: AttitudeSolution,
-        lab: np.ndarray,
-        t: np.ndarray,
-        ok: np.ndarray,
-        weight: np.ndarray,
-        rate: np.ndarray,
-    ) -> AttitudeSolution:
-        """``sol`` with the time its data centre on (`AttitudeSolution.data_t_s`): each star
-        used (``ok``; events at ``t`` with 1-based labels ``lab``) spreads its Wahba
-        ``weight`` evenly over its events. ``data_R``: ``sol.R`` moved back there by the
-        body ``rate`` it was moved forward with."""
-        if sol.R is None:
-            return sol
-        star = np.full(ok.size + 1, -1, dtype=np.int64)
-        star[1:][ok] = np.arange(int(ok.sum()))
-        s = star[lab]
-        keep = s >= 0
-        s, t = s[keep], t[keep]
-        w_ev = weight[s] / np.bincount(s, minlength=weight.size)[s]
-        t_data = float(np.sum(w_ev * t) / np.sum(w_ev))
-        R_data = sol.R @ rotvec_to_matrix(rate * (t_data - sol.t_s))
-        return replace(sol, data_t_s=t_data, data_R=R_data)
+
+def _compact_labels(ok: np.ndarray) -> np.ndarray:
+    """Map from 1-based gate labels (0: no star) to ``0..ok.sum()-1`` for the stars ``ok``,
+    -1 for the others."""
+    star_of = np.full(ok.size + 1, -1, dtype=np.int64)
+    star_of[1:][ok] = np.arange(int(ok.sum()))
+    return star_of
+
+
+def _at_data_time(
+    sol: AttitudeSolution, star: np.ndarray, t: np.ndarray, weight: np.ndarray, rate: np.ndarray
+) -> AttitudeSolution:
+    """``sol`` with the time its data centre on (`AttitudeSolution.data_t_s`): each star used
+    (events at ``t`` of star ``star``, -1: none used) spreads its Wahba ``weight`` evenly
+    over its events. ``data_R``: ``sol.R`` moved back there by the body ``rate`` it was moved
+    forward with."""
+    if sol.R is None:
+        return sol
+    keep = star >= 0
+    s, t = star[keep], t[keep]
+    w_ev = weight[s] / np.bincount(s, minlength=weight.size)[s]
+    t_data = float(np.sum(w_ev * t) / np.sum(w_ev))
+    R_data = sol.R @ rotvec_to_matrix(rate * (t_data - sol.t_s))
+    return replace(sol, data_t_s=t_data, data_R=R_data)
 
 
 def _velocity_rate_jacobian(b: np.ndarray, fx: float, fy: float) -> np.ndarray:
