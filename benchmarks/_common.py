@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import platform
+from importlib.metadata import version
 from pathlib import Path
 
 from satpose.datasets.render import render_sequence
@@ -24,3 +27,25 @@ def write_page(path: Path, text: str) -> None:
     tmp.write_text(text)
     tmp.replace(path)
     print(f"wrote {path}")
+
+
+def machine_summary() -> str:
+    """One line naming what a timing depends on: CPU model and vector units, cores, and the
+    versions of the compiled libraries (renders differ between AVX2 and AVX-512 CPUs)."""
+    model, flags = platform.machine(), set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name":
+                model = value.strip()
+            elif key.strip() == "flags":
+                flags = set(value.split())
+                break
+    except OSError:
+        pass
+    simd = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "no AVX2"
+    libs = ", ".join(
+        f"{name} {version(name)}"
+        for name in ("opencv-python-headless", "mitsuba", "numpy", "gtsam")
+    )
+    return f"{model} ({simd}), {os.cpu_count()} cores, {libs}"

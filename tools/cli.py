@@ -206,6 +206,7 @@ def _render(scenario: Scenario, out: Path, overwrite: bool) -> None:
     from tqdm import tqdm
 
     from satpose.datasets.render import render_sequence
+    from satpose.datasets.sequence import load_sequence
 
     start = time.perf_counter()
     with tqdm(
@@ -219,11 +220,17 @@ def _render(scenario: Scenario, out: Path, overwrite: bool) -> None:
         render_sequence(scenario, out, overwrite=overwrite, progress=lambda _k: bar.update(1))
     elapsed = time.perf_counter() - start
     rig = scenario.rig
+    variant = load_sequence(out).generator.get("variant", "unknown")
     print(
         f"wrote {scenario.frames} {'stereo' if rig.stereo else 'mono'} frames "
         f"({rig.width}x{rig.height}, {scenario.render.spp} spp) to {out} "
-        f"in {elapsed:.1f} s ({elapsed / scenario.frames:.2f} s/frame)"
+        f"in {elapsed:.1f} s ({elapsed / scenario.frames:.2f} s/frame, Mitsuba {variant})"
     )
+    if variant == "scalar_rgb":
+        log.warning(
+            "rendered with Mitsuba's scalar_rgb variant, several times slower than "
+            "llvm_ad_rgb (Debian: apt-get install libllvm19)"
+        )
 
 
 def cmd_render(args: argparse.Namespace) -> None:
