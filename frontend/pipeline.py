@@ -225,7 +225,7 @@ class StereoFrontend:
                 and self.target.anchor_id is not None
                 and not any(lm.track_id in self.target.map for lm in landmarks)
             ):
-                mapping = self.target.relocalize(ring, landmarks)
+                mapping = self.target.relocalize(ring, landmarks, predicted)
                 if mapping:
                     self.landmarks.rename(mapping)
                     landmarks = [

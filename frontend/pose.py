@@ -213,8 +213,11 @@ class TargetFrameTracker:
         self,
         ring: RingMeasurement,
         landmarks: Sequence[LandmarkMeasurement],
+        predicted: Rigid3 | None = None,
         gate_m: float = 0.03,
         angle_tol_deg: float = 3.0,
+        max_prediction_error_deg: float = 45.0,
+        min_support_margin: int = 2,
     ) -> dict[int, int]:
         """Re-identify landmarks after tracking was lost: ``{new track id: mapped id}``.
 
@@ -222,6 +225,14 @@ class TargetFrameTracker:
         most (detected, mapped) pairs of the same kind agree, each pair matching in distance
         from the axis and height above the ring plane within ``gate_m``. Needs two agreeing
         pairs; returns ``{}`` otherwise.
+
+        A symmetric landmark set (a panel's four corners, at one distance from the axis, are
+        symmetric under a half turn) makes several angles about equally likely, and a noisy
+        map can even favour the wrong one. So only angles within ``max_prediction_error_deg``
+        of the predicted pose's (``predicted``, left_cam_from_target; all angles without
+        one) compete, and the best must be supported by ``min_support_margin`` more
+        landmarks than the next; otherwise nothing is re-identified (``{}``, the frame gets no
+        pose) rather than the target frame being turned.
         """
         pts = [
             lm
@@ -251,15 +262,35 @@ class TargetFrameTracker:
         if len(votes) < 2:
             return {}
         tol = math.radians(angle_tol_deg)
-        best: list[tuple[float, int, int]] = []
-        for psi, _, _ in votes:
-            group = [
-                v for v in votes if abs((v[0] - psi + math.pi) % (2 * math.pi) - math.pi) < tol
-            ]
-            if len({v[1] for v in group}) > len({v[1] for v in best}):
-                best = group
-        if len({v[1] for v in best}) < 2:
+
+        def gap(a: float, b: float) -> float:
+            return abs((a - b + math.pi) % (2 * math.pi) - math.pi)
+
+        # Each vote's angle with the distinct landmarks that agree with it, best first; then
+        # the distinct hypotheses (angles farther apart than the agreement tolerance) that
+        # two or more landmarks support.
+        groups = sorted(
+            (
+                (len({v[1] for v in group}), psi, group)
+                for psi, _, _ in votes
+                for group in [[v for v in votes if gap(v[0], psi) < tol]]
+            ),
+            key=lambda g: -g[0],
+        )
+        hypotheses: list[tuple[int, float, list[tuple[float, int, int]]]] = []
+        for n, psi, group in groups:
+            if n >= 2 and all(gap(psi, other) >= 2 * tol for _, other, _ in hypotheses):
+                hypotheses.append((n, psi, group))
+        if predicted is not None:
+            x = predicted.R[:, 0]
+            psi_pred = math.atan2(float(x @ y0), float(x @ x0))
+            limit = math.radians(max_prediction_error_deg)
+            hypotheses = [h for h in hypotheses if gap(h[1], psi_pred) < limit]
+        if not hypotheses:
             return {}
+        if len(hypotheses) > 1 and hypotheses[1][0] > hypotheses[0][0] - min_support_margin:
+            return {}  # two rotations explain the landmarks about equally well
+        best = hypotheses[0][2]
         mapping: dict[int, int] = {}
         used: set[int] = set()
         for _, new, old in sorted(best, key=lambda v: v[1]):
