@@ -29,9 +29,10 @@ def write_page(path: Path, text: str) -> None:
     print(f"wrote {path}")
 
 
-def machine_summary() -> str:
-    """One line naming what a timing depends on: CPU model and vector units, cores, and the
-    versions of the compiled libraries (renders differ between AVX2 and AVX-512 CPUs)."""
+def machine_summary(libraries: bool = True) -> str:
+    """One line naming what a timing depends on: CPU model and vector units, cores, and (if
+    ``libraries``) this interpreter's versions of the compiled libraries (renders differ
+    between AVX2 and AVX-512 CPUs)."""
     model, flags = platform.machine(), set()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -44,6 +45,8 @@ def machine_summary() -> str:
     except OSError:
         pass
     simd = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "no AVX2"
+    if not libraries:
+        return f"{model} ({simd}), {os.cpu_count()} cores"
     libs = ", ".join(
         f"{name} {version(name)}"
         for name in ("opencv-python-headless", "mitsuba", "numpy", "gtsam")

@@ -15,6 +15,10 @@ from satpose.datasets.sequence import Calibration, Ring, SequenceWriter, TargetG
 TINY = ["--frames", "3", "--size", "320x256", "--spp", "4"]
 """Arguments that scale a preset down for tests (see the brief: 320x256, 4 spp)."""
 
+BOARD_SIZE = (640, 480)
+BOARD_VIEWS = 20
+"""The rendered calibration board of `board_sequence`: image size and number of views."""
+
 
 def synthetic_calibration(width: int = 48, height: int = 32) -> Calibration:
     K = np.array([[60.0, 0, 23.5], [0, 60.0, 15.5], [0, 0, 1]])
@@ -108,4 +112,17 @@ def rendered_spin(tmp_path_factory: pytest.TempPathFactory) -> Path:
     s = replace(s, render=replace(s.render, masks=False))
     out = tmp_path_factory.mktemp("spin") / "spin-far"
     render_sequence(s, out)
+    return out
+
+
+@pytest.fixture(scope="session")
+def board_sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The calibration preset: 20 views at 640x480, 4 spp, rendered once per test session
+    through the CLI."""
+    from satpose.tools.cli import main
+
+    out = tmp_path_factory.mktemp("calib") / "calibration"
+    size = f"{BOARD_SIZE[0]}x{BOARD_SIZE[1]}"
+    args = ["--frames", str(BOARD_VIEWS), "--size", size, "--spp", "4"]
+    assert main(["render", "calibration", "--out", str(out), *args]) == 0
     return out

@@ -38,7 +38,7 @@ from satpose.tools.calibcheck import (
 )
 from satpose.tools.cli import main
 
-SIZE = (640, 480)
+SIZE = (640, 480)  # the board_sequence fixture's (tests/conftest.py: BOARD_SIZE, BOARD_VIEWS)
 VIEWS = 20
 
 
@@ -146,15 +146,6 @@ def test_board_description_is_required() -> None:
 # --------------------------------------------------------------------------------------------
 # Rendered board
 # --------------------------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def board_sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The calibration preset: 20 views at 640x480, 4 spp, rendered through the CLI."""
-    out = tmp_path_factory.mktemp("calib") / "calibration"
-    args = ["--frames", str(VIEWS), "--size", f"{SIZE[0]}x{SIZE[1]}", "--spp", "4"]
-    assert main(["render", "calibration", "--out", str(out), *args]) == 0
-    return out
 
 
 @pytest.mark.render
