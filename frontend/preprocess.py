@@ -64,9 +64,7 @@ class Undistorter:
             mx, my = cv2.initUndistortRectifyMap(
                 camera.K, camera.dist, None, camera.K, camera.size, cv2.CV_32FC1
             )
-            self._maps: tuple[np.ndarray, np.ndarray] | None = cv2.convertMaps(
-                mx, my, cv2.CV_16SC2
-            )
+            self._maps: tuple[np.ndarray, np.ndarray] | None = cv2.convertMaps(mx, my, cv2.CV_16SC2)
         else:
             self._maps = None
 

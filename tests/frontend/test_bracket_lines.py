@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
-from satpose.frontend.bracket import BracketGeometry, project
 from satpose.frontend import bracket_lines as bl
+from satpose.frontend.bracket import BracketGeometry, project
 from satpose.frontend.bracket_lines import StrutDetectorConfig, detect_struts
 
 # An isosceles bracket like the rendered one (base 0.5 m, apex 0.45 m out), target frame.
