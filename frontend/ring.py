@@ -36,7 +36,12 @@ from satpose.frontend.conics import (
     refine_ellipse,
     sampson_distance,
 )
-from satpose.frontend.edges import EdgeSearchConfig, edges_along_normals, smoothed
+from satpose.frontend.edges import (
+    EdgeSearchConfig,
+    edges_along_normals,
+    sample_image,
+    smoothed,
+)
 from satpose.frontend.measurements import Camera, EllipseObservation
 from satpose.frontend.preprocess import PreparedImage
 
@@ -135,9 +140,7 @@ def inside_dominance(
     p = e.points(n)
     nrm = e.normals(n)
     both = np.concatenate([p - band_px * nrm, p + band_px * nrm]).astype(np.float32)
-    vals = cv2.remap(
-        image_s, both[:, 0:1], both[:, 1:2], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-    )[:, 0]
+    vals = sample_image(image_s, both[:, 0], both[:, 1], "linear")
     return float(np.mean(polarity * (vals[:n] - vals[n:]) > 0.01))
 
 
