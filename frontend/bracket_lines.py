@@ -63,6 +63,15 @@ class StrutDetectorConfig:
         yoke_weight: weight of `yoke_ratio` (strut-like brightness just beyond the apex, where
             the yoke to the wing is) in the hypothesis score: it tells the base from the side
             struts of a near-equilateral bracket.
+        min_yoke_margin: without a predicted pose or a reference (and ``yoke_weight > 0``),
+            the best hypothesis's `yoke_ratio` must exceed that of every hypothesis with
+            another labelling (a pose more than ``relabel_angle_deg`` away), and 0 (no yoke
+            seen), by this much, else the frame is refused as ambiguous: a near-equilateral
+            bracket fits its three cyclic labellings equally well, only the yoke tells them
+            apart, and a wrong one is off by ~120 deg.
+        relabel_angle_deg: two hypotheses whose attitudes differ by more than this are
+            different labellings (the same labelling from two pieces of one strut differs by
+            a few degrees).
     """
 
     blur_sigma_px: float = 1.2
@@ -77,6 +86,8 @@ class StrutDetectorConfig:
     min_sigma_px: float = 0.3
     strut_radius_m: float | None = 0.015
     yoke_weight: float = 2.0
+    min_yoke_margin: float = 0.25
+    relabel_angle_deg: float = 30.0
 
 
 @dataclass(frozen=True)
@@ -136,10 +147,28 @@ def _fit_line(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.n
     c = w @ points
     X = (points - c) * np.sqrt(w)[:, None]
     _, _, Vt = np.linalg.svd(X, full_matrices=False)
-    d = Vt[0]
+    d = _canonical_direction(Vt[0])
     n = np.array([-d[1], d[0]])
     res = float(np.sqrt(w @ ((points - c) @ n) ** 2))
     return c, d, res
+
+
+def _canonical_direction(d: np.ndarray) -> np.ndarray:
+    """``d`` or ``-d``, whichever points to +x (to +y when vertical): a line's direction
+    must not depend on the sign an SVD or a detector happens to return."""
+    return -d if (d[0] < 0 or (d[0] == 0 and d[1] < 0)) else d
+
+
+def canonical_segments(seg: np.ndarray) -> np.ndarray:
+    """Segments ``(N, 4)`` ``x1, y1, x2, y2``, each oriented by `_canonical_direction` and the
+    rows sorted: the order and direction conventions of a line detector (LSD orients a
+    segment by its gradient, in an order of its own) then cannot change what is built from
+    them."""
+    s = np.asarray(seg, dtype=float).reshape(-1, 4).copy()
+    d = s[:, 2:] - s[:, :2]
+    flip = (d[:, 0] < 0) | ((d[:, 0] == 0) & (d[:, 1] < 0))
+    s[flip] = s[flip][:, [2, 3, 0, 1]]
+    return s[np.lexsort(s.T[::-1])]
 
 
 def _intersect(a: Strut, b: Strut) -> np.ndarray | None:
@@ -152,7 +181,7 @@ def _intersect(a: Strut, b: Strut) -> np.ndarray | None:
 
 def line_segments(image: np.ndarray, config: StrutDetectorConfig) -> np.ndarray:
     """LSD segments ``(N, 4)`` of a grey image (uint8/uint16/float), at least
-    ``min_segment_px`` long."""
+    ``min_segment_px`` long, in `canonical_segments` order and direction."""
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -163,13 +192,15 @@ def line_segments(image: np.ndarray, config: StrutDetectorConfig) -> np.ndarray:
     lines = lsd.detect(f.astype(np.uint8))[0]
     if lines is None:
         return np.zeros((0, 4))
-    seg = lines.reshape(-1, 4).astype(float)
+    seg = canonical_segments(lines)
     length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
     return seg[length >= config.min_segment_px]
 
 
 def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> list[Strut]:
-    """Bright bars: pairs of parallel segments with brighter pixels between them."""
+    """Bright bars: pairs of parallel segments with brighter pixels between them (the same
+    bars whatever the order and direction of ``seg``'s rows)."""
+    seg = canonical_segments(seg)
     h, w = image.shape[:2]
     img = image.astype(np.float32)
     img = cv2.GaussianBlur(img, (0, 0), config.blur_sigma_px)
@@ -304,7 +335,9 @@ def _observation(
 
 
 def _plausible(base: Strut, s1: Strut, s2: Strut, config: StrutDetectorConfig) -> bool:
-    """The base meets both struts near its observed ends; the struts start there."""
+    """The base meets both struts near its observed ends; each strut is seen from its base
+    vertex (the paper's partly visible struts) or up to the apex (a whole triangle in view
+    whose strut is broken near the base vertex), and does not reach past either."""
     p1 = _intersect(base, s1)
     p2 = _intersect(base, s2)
     if p1 is None or p2 is None:
@@ -321,8 +354,17 @@ def _plausible(base: Strut, s1: Strut, s2: Strut, config: StrutDetectorConfig) -
         return False
     near1, far1 = _oriented(s1, p1)
     near2, far2 = _oriented(s2, p2)
-    if np.linalg.norm(near1 - p1) > tol or np.linalg.norm(near2 - p2) > tol:
-        return False
+    p5 = _intersect(s1, s2)
+    for near, far, start in ((near1, far1, p1), (near2, far2, p2)):
+        if np.linalg.norm(near - start) <= tol:
+            continue
+        if p5 is None or np.linalg.norm(far - p5) > tol:
+            return False
+        # anchored at the apex only: it must lie between the base vertex and the apex
+        full = float(np.linalg.norm(p5 - start))
+        u = (p5 - start) / full if full > 0 else p5 - start
+        if float((near - start) @ u) < 0 or float((far - start) @ u) > full + tol:
+            return False
     # the struts leave the base on the same side
     n = np.array([-(p2 - p1)[1], (p2 - p1)[0]])
     return float((far1 - p1) @ n) * float((far2 - p2) @ n) > 0
@@ -478,6 +520,7 @@ def detect_struts(
         return StrutDetection(obs, (base, s1, s2), seg, tuple(cands), res, res.reason, 1)
     best_det: StrutDetection | None = None
     best_score = -math.inf
+    scored: list[tuple[float, Rigid3]] = []  # (yoke ratio, pose) of every consistent hypothesis
     blurred = cv2.GaussianBlur(scaled, (0, 0), cfg.blur_sigma_px)
     tried = 0
     top = cands[: cfg.candidates]
@@ -505,7 +548,9 @@ def detect_struts(
         elif res.apex_px is not None:
             pts = obs.points()
             ratio = yoke_ratio(blurred, pts[0], pts[1], res.apex_px, struts)
-            score = cfg.yoke_weight * (ratio if np.isfinite(ratio) else 0.0)
+            ratio = ratio if np.isfinite(ratio) else 0.0
+            score = cfg.yoke_weight * ratio
+            scored.append((ratio, res.pose))
         score += (base.support_px + s1.support_px + s2.support_px) / 1e6  # tie-break
         if score > best_score:
             best_score = score
@@ -518,4 +563,36 @@ def detect_struts(
             tuple(cands),
             reason=f"no consistent bracket among {len(top)} strut candidates ({tried} tried)",
         )
+    if (
+        reference is None
+        and cfg.yoke_weight > 0
+        and best_det.result is not None
+        and best_det.result.pose is not None
+    ):
+        margin = _labelling_margin(best_det.result.pose, scored, cfg.relabel_angle_deg)
+        if margin < cfg.min_yoke_margin:
+            return StrutDetection(
+                None,
+                None,
+                seg,
+                tuple(cands),
+                reason=(
+                    f"labelling ambiguous: the best labelling's yoke ratio exceeds another's "
+                    f"(or none) by {margin:.2f} (need {cfg.min_yoke_margin:.2f})"
+                ),
+                hypotheses=tried,
+            )
     return best_det
+
+
+def _rotation_deg(a: Rigid3, b: Rigid3) -> float:
+    c = (float(np.trace(a.R.T @ b.R)) - 1.0) / 2.0
+    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+
+def _labelling_margin(best: Rigid3, scored: list[tuple[float, Rigid3]], angle_deg: float) -> float:
+    """Yoke ratio of ``best`` minus the largest yoke ratio of a hypothesis with another
+    labelling (attitude more than ``angle_deg`` away), or minus 0 (no yoke) if larger."""
+    own = max((r for r, pose in scored if _rotation_deg(pose, best) <= angle_deg), default=0.0)
+    other = [r for r, pose in scored if _rotation_deg(pose, best) > angle_deg]
+    return own - max([0.0, *other])

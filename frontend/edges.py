@@ -2,9 +2,10 @@
 
 Used to refine the ring ellipse and the panel edge lines: the image is smoothed once
 (Gaussian, ``sigma_px``), intensity profiles are sampled along each normal with bicubic
-interpolation, and the edge is the extremum of the profile's derivative of the expected sign,
-located to sub-pixel precision by a parabola through the three samples around it. Whole-pixel
-Canny edges scatter by ~0.5 px; these by ~0.05 px on a clean step.
+interpolation (`sample_image`: exact at the sample positions whatever the OpenCV version), and
+the edge is the extremum of the profile's derivative of the expected sign, located to sub-pixel
+precision by a parabola through the three samples around it. Whole-pixel Canny edges scatter
+by ~0.5 px; these by ~0.05 px on a clean step.
 """
 
 from __future__ import annotations
@@ -49,6 +50,52 @@ class EdgeSearchConfig:
     model_window_px: tuple[float, float] = (-2.0, 1.0)
 
 
+def sample_image(
+    image: np.ndarray, x: np.ndarray, y: np.ndarray, method: Literal["linear", "cubic"]
+) -> np.ndarray:
+    """``image`` (H, W) interpolated at the points ``(x, y)`` (any equal shapes) with the
+    border replicated: ``linear`` (bilinear) or ``cubic`` (Keys, a = -0.75, as OpenCV's
+    INTER_CUBIC), float32.
+
+    Exact at the given positions: OpenCV 4.x ``remap`` with float maps rounds them to 1/32 px
+    and 5.x does not, which moves sub-pixel edges by up to ~1/64 px between versions.
+    """
+    img = np.asarray(image, dtype=np.float64)
+    h, w = img.shape
+    xs = np.asarray(x, dtype=np.float64)
+    ys = np.asarray(y, dtype=np.float64)
+    x0, y0 = np.floor(xs), np.floor(ys)
+    tx, ty = xs - x0, ys - y0
+    x0i, y0i = x0.astype(np.int64), y0.astype(np.int64)
+    offsets: tuple[int, ...]
+    if method == "linear":
+        offsets = (0, 1)
+        wx = [1.0 - tx, tx]
+        wy = [1.0 - ty, ty]
+    else:
+        a = -0.75
+        offsets = (-1, 0, 1, 2)
+
+        def keys(t: np.ndarray) -> list[np.ndarray]:
+            # weights of the taps at -1, 0, 1, 2 for a fraction t in [0, 1)
+            return [
+                ((a * (t + 1) - 5 * a) * (t + 1) + 8 * a) * (t + 1) - 4 * a,
+                ((a + 2) * t - (a + 3)) * t * t + 1,
+                ((a + 2) * (1 - t) - (a + 3)) * (1 - t) * (1 - t) + 1,
+                ((a * (2 - t) - 5 * a) * (2 - t) + 8 * a) * (2 - t) - 4 * a,
+            ]
+
+        wx, wy = keys(tx), keys(ty)
+    out = np.zeros(xs.shape)
+    for j, dy in enumerate(offsets):
+        row = np.clip(y0i + dy, 0, h - 1)
+        acc = np.zeros(xs.shape)
+        for i, dx in enumerate(offsets):
+            acc += wx[i] * img[row, np.clip(x0i + dx, 0, w - 1)]
+        out += wy[j] * acc
+    return out.astype(np.float32)
+
+
 def smoothed(gray: np.ndarray, config: EdgeSearchConfig) -> np.ndarray:
     """The Gaussian-smoothed float32 image the profiles are sampled from."""
     return cv2.GaussianBlur(gray.astype(np.float32), (0, 0), config.smooth_sigma_px)
@@ -81,12 +128,8 @@ def edges_along_normals(
     n = points.shape[0]
     s = np.arange(-half_width_px, half_width_px + 1e-9, config.step_px, dtype=np.float32)
     pos = points[:, None, :] + s[None, :, None] * normals[:, None, :]  # (N, S, 2)
-    prof = cv2.remap(
-        image_s,
-        pos[..., 0].astype(np.float32),
-        pos[..., 1].astype(np.float32),
-        cv2.INTER_CUBIC,
-        borderMode=cv2.BORDER_REPLICATE,
+    prof = sample_image(
+        image_s, pos[..., 0].astype(np.float32), pos[..., 1].astype(np.float32), "cubic"
     )
     deriv = -polarity * (prof[:, 2:] - prof[:, :-2]) / (2 * config.step_px)  # at s[1:-1]
     k = np.argmax(deriv, axis=1)
@@ -157,12 +200,11 @@ def _step_model(
     lo, hi = config.model_window_px
     t = np.arange(lo, hi + 1e-9, 0.25, dtype=np.float64)  # relative to the coarse edge
     pos = points[:, None, :] + (coarse[:, None] + t[None, :])[..., None] * normals[:, None, :]
-    y = cv2.remap(
+    y = sample_image(
         raw.astype(np.float32),
         pos[..., 0].astype(np.float32),
         pos[..., 1].astype(np.float32),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
+        "linear",
     ).astype(np.float64)
     y = -polarity * y  # now rising from the bright (low) side to the dark (high) side
     A = y[:, : max(2, int(0.25 * len(t)))].mean(axis=1)  # bright side level (low after flip)

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from satpose.frontend.conics import ConicError, Ellipse, fit_ellipse_direct, refine_ellipse
-from satpose.frontend.edges import EdgeSearchConfig, edges_along_normals, smoothed
+from satpose.frontend.edges import EdgeSearchConfig, edges_along_normals, sample_image, smoothed
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -306,7 +306,7 @@ def _fill_fraction(image_s: np.ndarray, corners: np.ndarray, level: float) -> fl
     if ok.sum() < 10:
         return 0.0
     p = pts[ok].astype(np.float32)
-    vals = cv2.remap(image_s, p[:, 0:1], p[:, 1:2], cv2.INTER_LINEAR)[:, 0]
+    vals = sample_image(image_s, p[:, 0], p[:, 1], "linear")  # inside: border unused
     return float(np.mean(vals > level))
 
 
@@ -335,8 +335,8 @@ class _LineSupport:
         best = np.full(s.size, -np.inf, dtype=np.float32)
         for off in (-1.5, -0.75, 0.0, 0.75, 1.5):
             p = (pts + off * n).astype(np.float32)
-            vx = cv2.remap(gx, p[:, 0:1], p[:, 1:2], cv2.INTER_LINEAR)[:, 0]
-            vy = cv2.remap(gy, p[:, 0:1], p[:, 1:2], cv2.INTER_LINEAR)[:, 0]
+            vx = sample_image(gx, p[:, 0], p[:, 1], "linear")  # only `inside` samples count
+            vy = sample_image(gy, p[:, 0], p[:, 1], "linear")
             best = np.maximum(best, -(vx * n[0] + vy * n[1]))
         good = inside & (best > config.support_gradient)
         self.cum_good = np.concatenate([[0], np.cumsum(good)])
@@ -532,8 +532,7 @@ def _darkness(gray: np.ndarray, c: np.ndarray, r: float) -> float:
     inner = c + 0.5 * r * np.concatenate([u, 0.5 * u, np.zeros((1, 2))])
     outer = c + r * np.concatenate([1.5 * u, 2.2 * u])
     p = np.concatenate([inner, outer]).astype(np.float32)
-    v = cv2.remap(gray, p[:, 0:1], p[:, 1:2], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    v = v[:, 0]
+    v = sample_image(gray, p[:, 0], p[:, 1], "linear")
     out = float(np.median(v[inner.shape[0] :]))
     return float(v[: inner.shape[0]].mean()) / out if out > 0 else np.inf
 

@@ -57,9 +57,14 @@ class Undistorter:
         self.camera = camera
         self.config = config or PreprocessConfig()
         if camera.has_distortion:
-            self._maps: tuple[np.ndarray, np.ndarray] | None = cv2.initUndistortRectifyMap(
+            # Fixed-point maps (integer pixel + 1/32 px fraction): bilinear remap with float
+            # maps quantises the fraction to 1/32 px in OpenCV 4.x but interpolates exactly
+            # in 5.x (up to 2/255 apart on a rendered frame, enough to change which line
+            # segments LSD reports); with fixed-point maps both give the same image.
+            mx, my = cv2.initUndistortRectifyMap(
                 camera.K, camera.dist, None, camera.K, camera.size, cv2.CV_32FC1
             )
+            self._maps: tuple[np.ndarray, np.ndarray] | None = cv2.convertMaps(mx, my, cv2.CV_16SC2)
         else:
             self._maps = None
 
@@ -106,13 +111,12 @@ class Undistorter:
         if self._maps is None:
             sx0, sy0, sx1, sy1 = x0, y0, x1, y1
         else:
-            mx = self._maps[0][y0:y1, x0:x1]
-            my = self._maps[1][y0:y1, x0:x1]
+            xy = self._maps[0][y0:y1, x0:x1]  # integer parts (x, y); [1] holds the fraction
             # source pixels the bilinear taps need (+1 for the right/bottom tap, +1 margin)
-            sx0 = max(int(np.floor(mx.min())) - 1, 0)
-            sy0 = max(int(np.floor(my.min())) - 1, 0)
-            sx1 = min(int(np.ceil(mx.max())) + 2, w)
-            sy1 = min(int(np.ceil(my.max())) + 2, h)
+            sx0 = max(int(xy[..., 0].min()) - 1, 0)
+            sy0 = max(int(xy[..., 1].min()) - 1, 0)
+            sx1 = min(int(xy[..., 0].max()) + 3, w)
+            sy1 = min(int(xy[..., 1].max()) + 3, h)
         # The source window keeps the image's own border, so the constant border of remap
         # applies exactly where it applies to the full image.
         src = self._gray(img[sy0:sy1, sx0:sx1])
@@ -121,8 +125,8 @@ class Undistorter:
         else:
             gray = cv2.remap(
                 src,
-                mx - np.float32(sx0),
-                my - np.float32(sy0),
+                xy - np.array([sx0, sy0], np.int16),
+                self._maps[1][y0:y1, x0:x1],
                 cv2.INTER_LINEAR,
                 borderMode=cv2.BORDER_CONSTANT,
                 borderValue=0.0,

@@ -36,7 +36,12 @@ from satpose.frontend.conics import (
     refine_ellipse,
     sampson_distance,
 )
-from satpose.frontend.edges import EdgeSearchConfig, edges_along_normals, smoothed
+from satpose.frontend.edges import (
+    EdgeSearchConfig,
+    edges_along_normals,
+    sample_image,
+    smoothed,
+)
 from satpose.frontend.measurements import Camera, EllipseObservation
 from satpose.frontend.preprocess import PreparedImage
 
@@ -83,7 +88,10 @@ class RingConfig:
         edges: sub-pixel edge settings.
         outer_search_scales: at acquisition, when the detector finds no larger concentric
             ellipse around a candidate, sub-pixel edges are searched around the candidate
-            scaled by these factors (`RingTracker._outer_by_search`).
+            scaled by these factors (`RingTracker._outer_by_search`). 1.0 re-fits the
+            candidate itself on clean edges of each polarity: a small ring's detection can mix
+            arcs of its inner and outer edges (6 px apart at 7 m) into one ellipse that fits
+            neither, and which arcs it mixes changes with the last bits of the image.
         outer_search_coverage: fraction of the ``edge_points`` normals such a fit must keep.
     """
 
@@ -109,7 +117,7 @@ class RingConfig:
             smooth_sigma_px=0.6, step_px=0.25, locate="model", model_window_px=(-2.0, 0.5)
         )
     )
-    outer_search_scales: tuple[float, ...] = (1.06, 1.13, 1.21, 1.3, 1.4, 1.5)
+    outer_search_scales: tuple[float, ...] = (1.0, 1.06, 1.13, 1.21, 1.3, 1.4, 1.5)
     outer_search_coverage: float = 0.7
 
 
@@ -132,9 +140,7 @@ def inside_dominance(
     p = e.points(n)
     nrm = e.normals(n)
     both = np.concatenate([p - band_px * nrm, p + band_px * nrm]).astype(np.float32)
-    vals = cv2.remap(
-        image_s, both[:, 0:1], both[:, 1:2], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-    )[:, 0]
+    vals = sample_image(image_s, both[:, 0], both[:, 1], "linear")
     return float(np.mean(polarity * (vals[:n] - vals[n:]) > 0.01))
 
 
@@ -281,7 +287,7 @@ class RingTracker:
         return (self._observation(refined, source), pol), None
 
     def acquire(
-        self, image: PreparedImage, max_candidates: int = 4
+        self, image: PreparedImage, max_candidates: int = 6
     ) -> list[tuple[EllipseObservation, int]]:
         """Every plausible ring edge in the whole image, refined, largest first, with its
         polarity; at most ``max_candidates``."""
@@ -289,18 +295,25 @@ class RingTracker:
             return []
         cfg = self.config
         image_s = smoothed(image.gray, cfg.edges)
-        out = []
+        out: list[tuple[EllipseObservation, int]] = []
         for e, pol in self._plausible(image, None, image_s, None):
             # the whole-image pass can miss the outer edge of a small ring next to the inner
-            # one; a search around each candidate finds it (as `follow` does later)
-            larger = self._larger_concentric(image, image_s, e)
-            if larger is None:
-                larger = self._outer_by_search(image, image_s, e)
-            if larger is not None:
-                out.append(larger)
+            # one, or mix arcs of both into one ellipse; a larger concentric detection and a
+            # search around each candidate both find it (as `follow` does later). Both are
+            # kept: a mixed detection refined on edges can pass as the larger one.
+            # The search starts from the candidate refined on edges when it can be (a clean
+            # fit of one edge), else from the detection.
             refined = self._refine(image_s, image.gray, e, pol)
+            for larger in (
+                self._larger_concentric(image, image_s, e),
+                self._outer_by_search(image, image_s, e if refined is None else refined[0]),
+            ):
+                if larger is not None and not _known(larger[0], out):
+                    out.append(larger)
             if refined is not None:
-                out.append((self._observation(refined, "detected"), pol))
+                obs = self._observation(refined, "detected")
+                if not _known(obs, out):
+                    out.append((obs, pol))
             if len(out) >= max_candidates:
                 break
         return out[:max_candidates]
@@ -340,7 +353,7 @@ class RingTracker:
             start = Ellipse(cx=e0.cx, cy=e0.cy, a=e0.a * scale, b=e0.b * scale, theta=e0.theta)
             for pol in (+1, -1, 0):
                 refined = self._refine(image_s, image.gray, start, pol)
-                if refined is None or not _grown_concentric(refined[0], e0):
+                if refined is None or not _grown_concentric(refined[0], e0, min_growth=0.99):
                     continue
                 if refined[3].shape[0] < cfg.outer_search_coverage * cfg.edge_points:
                     continue
@@ -422,12 +435,23 @@ def _edges(
     return np.where((c_d > c_b)[:, None], darker, brighter)
 
 
-def _grown_concentric(e: Ellipse, e0: Ellipse) -> bool:
-    """``e`` could be an outer concentric edge of the rim whose edge ``e0`` is: 3 % to 60 %
-    larger, the same centre (within a tenth of the major axis) and shape."""
-    grows = 1.03 < (e.a + e.b) / (e0.a + e0.b) < 1.6
+def _grown_concentric(e: Ellipse, e0: Ellipse, min_growth: float = 1.03) -> bool:
+    """``e`` could be an outer concentric edge of the rim whose edge ``e0`` is: ``min_growth``
+    (3 %) to 60 % larger, the same centre (within a tenth of the major axis) and shape."""
+    grows = min_growth < (e.a + e.b) / (e0.a + e0.b) < 1.6
     concentric = float(np.linalg.norm(e.center - e0.center)) < 0.1 * e0.a
     return grows and concentric and abs(e.b / e.a - e0.b / e0.a) < 0.1
+
+
+def _known(
+    obs: EllipseObservation, found: list[tuple[EllipseObservation, int]], tol_px: float = 0.5
+) -> bool:
+    """``obs`` repeats one of ``found`` (centre and axes within ``tol_px``)."""
+    return any(
+        float(np.abs(o.center_px - obs.center_px).max()) < tol_px
+        and float(np.abs(o.axes_px - obs.axes_px).max()) < tol_px
+        for o, _ in found
+    )
 
 
 def _distance(points: np.ndarray, e: Ellipse) -> np.ndarray:

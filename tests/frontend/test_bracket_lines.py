@@ -6,8 +6,10 @@ import math
 
 import cv2
 import numpy as np
+import pytest
 
 from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
+from satpose.frontend import bracket_lines as bl
 from satpose.frontend.bracket import BracketGeometry, project
 from satpose.frontend.bracket_lines import StrutDetectorConfig, detect_struts
 
@@ -86,3 +88,114 @@ def test_blank_and_clutter_images_give_a_reason() -> None:
     cv2.line(one, (100, 100), (500, 300), 200, 9)
     det = detect_struts(one, K, GEO)
     assert det.observation is None and "candidates" in det.reason
+
+
+# -- independence of the line detector's conventions, labelling checks ---------------------------
+
+EQUILATERAL = np.array([[0.0, 0.25, 0.0], [0.0, -0.25, 0.0], [0.25 * math.sqrt(3.0), 0.0, 0.0]])
+
+
+def drawn_bars(
+    pose: Rigid3,
+    vertices: np.ndarray,
+    bars: list[tuple[np.ndarray, np.ndarray]],
+    width_px: int = 9,
+    seed: int = 0,
+) -> np.ndarray:
+    """Like `drawn`, for any list of 3-D bars ``(start, end)`` (target frame)."""
+    s = 8
+    big = np.zeros((480 * s, 640 * s), np.uint8)
+    for a, b in bars:
+        p, q = ((px + 0.5) * s - 0.5 for px in project(pose, np.array([a, b]), K))
+        cv2.line(big, (round(p[0]), round(p[1])), (round(q[0]), round(q[1])), 200, width_px * s)
+    img = cv2.resize(big, (640, 480), interpolation=cv2.INTER_AREA).astype(float)
+    img += np.random.default_rng(seed).normal(0, 4.0, img.shape) + 20
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_canonical_segments_ignore_order_and_direction() -> None:
+    """Any permutation of the rows and reversal of any segment gives the same array."""
+    rng = np.random.default_rng(7)
+    seg = rng.uniform(0, 640, (40, 4))
+    seg[3, 2] = seg[3, 0]  # a vertical segment: direction by y
+    ref = bl.canonical_segments(seg)
+    for _ in range(5):
+        s = seg[rng.permutation(len(seg))]
+        flip = rng.random(len(s)) < 0.5
+        s[flip] = s[flip][:, [2, 3, 0, 1]]
+        np.testing.assert_array_equal(bl.canonical_segments(s), ref)
+    d = ref[:, 2:] - ref[:, :2]
+    assert np.all((d[:, 0] > 0) | ((d[:, 0] == 0) & (d[:, 1] > 0)))
+
+
+@pytest.mark.parametrize("mode", ["reversed", "permuted", "both"])
+def test_labelling_does_not_depend_on_segment_order_or_direction(
+    mode: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The same drawn bracket with the LSD segments reversed / shuffled (a line detector's
+    conventions differ between OpenCV versions) gives the same struts and points (exactly:
+    the segments are put in one canonical order first)."""
+    T = pose_facing(25.0, spin_deg=-35.0)
+    img = drawn(T, seed=3)
+    cfg = StrutDetectorConfig(face_sign=-1, strut_radius_m=9 / 900 * 1.5 / 2)
+    ref = detect_struts(img, K, GEO, cfg)
+    assert ref.observation is not None, ref.reason
+    rng = np.random.default_rng(11)
+    original = bl.line_segments
+
+    def shuffled(image: np.ndarray, config: StrutDetectorConfig) -> np.ndarray:
+        s = original(image, config)
+        if mode in ("permuted", "both"):
+            s = s[rng.permutation(len(s))]
+        if mode == "reversed":
+            s = s[:, [2, 3, 0, 1]]
+        elif mode == "both":
+            flip = rng.random(len(s)) < 0.5
+            s[flip] = s[flip][:, [2, 3, 0, 1]]
+        return s
+
+    monkeypatch.setattr(bl, "line_segments", shuffled)
+    det = detect_struts(img, K, GEO, cfg)
+    assert det.observation is not None, det.reason
+    np.testing.assert_array_equal(det.observation.points(), ref.observation.points())
+
+
+def test_strut_seen_only_near_the_apex_is_labelled() -> None:
+    """The whole triangle in view, the strut from P1 missing its first third (occluded near
+    P1): the hypothesis is anchored at the apex, and the labelling and pose stay right
+    (within 2 deg / 2 cm, as `test_detects_the_three_struts_and_their_points`)."""
+    T = pose_facing(25.0, spin_deg=60.0)
+    gap = V[0] + 0.35 * (V[2] - V[0])
+    bars = [(V[0], V[1]), (gap, V[2]), (V[1], V[2]), (V[2], YOKE_END)]
+    img = drawn_bars(T, V, bars, seed=4)
+    cfg = StrutDetectorConfig(face_sign=-1, strut_radius_m=9 / 900 * 1.5 / 2)
+    det = detect_struts(img, K, GEO, cfg)
+    assert det.observation is not None, det.reason
+    truth = project(T, V, K)
+    assert np.linalg.norm(det.observation.p1_px - truth[0]) < 0.5
+    assert np.linalg.norm(det.observation.p2_px - truth[1]) < 0.5
+    assert det.result is not None and det.result.pose is not None
+    R_err = np.degrees(np.linalg.norm(cv2.Rodrigues(det.result.pose.R.T @ T.R)[0]))
+    assert R_err < 2.0 and np.linalg.norm(det.result.pose.t - T.t) < 0.02
+
+
+def test_equilateral_bracket_without_a_yoke_is_refused_not_mislabelled() -> None:
+    """An equilateral bracket with no yoke: its three cyclic labellings fit equally well, so
+    acquisition refuses the frame; with the yoke drawn, it is labelled right (2 deg)."""
+    geo = BracketGeometry(vertices_m=EQUILATERAL, vertex_sigma_m=0.0)
+    c = EQUILATERAL.mean(axis=0)
+    R = rotvec_to_matrix(np.array([math.radians(25.0), 0.0, 0.0])) @ rotvec_to_matrix(
+        np.array([0.0, 0.0, math.radians(10.0)])
+    )
+    T = Rigid3(R=R, t=np.array([0.0, 0.0, 1.5]) - R @ c)
+    sides = [(EQUILATERAL[a], EQUILATERAL[b]) for a, b in ((0, 1), (0, 2), (1, 2))]
+    cfg = StrutDetectorConfig(face_sign=-1, strut_radius_m=9 / 900 * 1.5 / 2)
+    bare = detect_struts(drawn_bars(T, EQUILATERAL, sides, seed=5), K, geo, cfg)
+    assert bare.observation is None and "ambiguous" in bare.reason
+    yoke = EQUILATERAL[2] + 0.2 * (EQUILATERAL[2] - c) / np.linalg.norm(EQUILATERAL[2] - c)
+    det = detect_struts(
+        drawn_bars(T, EQUILATERAL, [*sides, (EQUILATERAL[2], yoke)], seed=5), K, geo, cfg
+    )
+    assert det.result is not None and det.result.pose is not None, det.reason
+    R_err = np.degrees(np.linalg.norm(cv2.Rodrigues(det.result.pose.R.T @ T.R)[0]))
+    assert R_err < 2.0
