@@ -100,9 +100,7 @@ class BadFrames:
                 pass
         return str(path)
 
-    def note(
-        self, frame: int, failures: Iterable[str], files: Sequence[Path | None] = ()
-    ) -> bool:
+    def note(self, frame: int, failures: Iterable[str], files: Sequence[Path | None] = ()) -> bool:
         """Look at one frame's failure notes; warn and count if the frame is bad.
 
         Args:

@@ -259,7 +259,7 @@ def run_frontend_on(
             f"{sequence_path}: the stereo frontend needs a stereo sequence (this one is {seq.kind})"
         )
     config = load_config(FrontendConfig, config_path) if config_path else FrontendConfig()
-    with staged_output(out, overwrite, marker="measurements.parquet", what="frontend") as stage:
+    with staged_output(out, overwrite, marker="measurements.parquet", what="a frontend") as stage:
         frontend = StereoFrontend(seq.calibration, config)
         bad = BadFrames(seq.root)
         results = []

@@ -72,14 +72,14 @@ def check_out(
     overwrite: bool,
     *,
     marker: str | None = None,
-    what: str = "output",
+    what: str = "an output",
     error: type[SatposeError] = ResultFileError,
 ) -> None:
     """Refuse an output folder we must not replace, before any work is done.
 
     A missing or empty folder is fine. A non-empty one is replaced only with ``overwrite``
     and, when ``marker`` is given, only if it holds that file (it is then one of ours: a
-    ``what`` folder); any other non-empty folder is never touched.
+    ``what`` folder, e.g. ``"a run"``); any other non-empty folder is never touched.
     """
     if not out.exists():
         return
@@ -88,9 +88,9 @@ def check_out(
     if not any(out.iterdir()):
         return
     if marker is not None and not (out / marker).is_file():
-        raise error(f"{out}: folder is not empty and not a {what} folder (no {marker})")
+        raise error(f"{out}: folder is not empty and not {what} folder (no {marker})")
     if not overwrite:
-        raise error(f"{out}: a {what} folder already exists (choose another folder or --overwrite)")
+        raise error(f"{out}: {what} folder already exists (choose another folder or --overwrite)")
 
 
 def make_stage(out: Path, error: type[SatposeError] = ResultFileError) -> Path:
@@ -110,14 +110,14 @@ def staged_output(
     overwrite: bool,
     *,
     marker: str | None = None,
-    what: str = "output",
+    what: str = "an output",
     error: type[SatposeError] = ResultFileError,
 ) -> Iterator[Path]:
     """Build the output folder ``out`` in a staging folder and rename it into place at the
     end, so that a failure or Ctrl-C leaves nothing (and an existing folder, replaced only
     with ``overwrite``, stays as it was until the new one is complete)::
 
-        with staged_output(out, overwrite, marker="run.yaml", what="run") as stage:
+        with staged_output(out, overwrite, marker="run.yaml", what="a run") as stage:
             write_files(stage)
 
     `check_out` (``marker``, ``what``, ``error``) runs first, before any work.

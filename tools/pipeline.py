@@ -242,7 +242,7 @@ def run_pipeline(
             f"{sequence_path}: the stereo pipeline needs a stereo sequence (this one is {seq.kind})"
         )
     out = Path(out)
-    with staged_output(out, overwrite, marker="run.yaml", what="run", error=RunError) as stage:
+    with staged_output(out, overwrite, marker="run.yaml", what="a run", error=RunError) as stage:
         result = _run(seq, Path(sequence_path), estimator, stage, cfg, spawn, progress)
     return replace(result, out=out)
 
