@@ -185,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _scenario_from_args(args: argparse.Namespace) -> Scenario:
-    from satpose.datasets.config import replace_nested
+    from satpose.datasets.config import replace_nested, yaml_problem
     from satpose.datasets.scenarios import preset, scaled
 
     scenario = preset(args.preset)
@@ -195,9 +195,7 @@ def _scenario_from_args(args: argparse.Namespace) -> Scenario:
         except OSError as exc:
             raise ConfigError(f"{args.config}: cannot read ({exc.strerror or exc})") from None
         except yaml.YAMLError as exc:
-            raise ConfigError(
-                f"{args.config}: not valid YAML: {str(exc).splitlines()[0]}"
-            ) from None
+            raise ConfigError(f"{args.config}: not valid YAML: {yaml_problem(exc)}") from None
         if not isinstance(overrides, dict):
             raise ConfigError(f"{args.config}: must hold a mapping of scenario overrides")
         try:

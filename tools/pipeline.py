@@ -43,7 +43,7 @@ import pandas as pd
 import yaml
 
 from satpose.backend import BackendConfig, BackendError, Estimate, StepReport, make_estimator
-from satpose.datasets.config import to_plain
+from satpose.datasets.config import to_plain, yaml_problem
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3
 from satpose.datasets.sequence import Sequence, load_sequence
@@ -214,6 +214,26 @@ def read_estimate_npz(path: Path) -> Estimate:
         )
     except (OSError, KeyError, ValueError) as exc:
         raise RunError(f"{path}: not a readable estimate ({exc})") from None
+
+
+def read_provenance(run: Path) -> dict[str, Any]:
+    """The run folder's run.yaml as a mapping (empty if there is none).
+
+    Raises:
+        RunError: run.yaml is not valid YAML (naming line and column) or not a mapping.
+    """
+    path = Path(run) / "run.yaml"
+    if not path.is_file():
+        return {}
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except yaml.YAMLError as exc:
+        raise RunError(f"{path}: not valid YAML: {yaml_problem(exc)}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RunError(f"{path}: cannot read ({exc})") from None
+    if not isinstance(data, dict):
+        raise RunError(f"{path}: must hold a YAML mapping at the top level")
+    return data
 
 
 def run_pipeline(
