@@ -413,6 +413,27 @@ EXTRA_COMMANDS: list[Callable[[Any], None]] = [
 ]
 
 
+class _BarAwareHandler(logging.StreamHandler):
+    """Log lines on stderr that print above a visible progress bar instead of into it
+    (``tqdm.write``), and plainly while no bar is shown (a bar still within its ``delay``
+    must not be drawn by the write: it would then never be ended by its ``close``)."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from tqdm import tqdm
+
+        bars = list(getattr(tqdm, "_instances", ()))
+        if not any(b.last_print_t >= b.start_t + b.delay for b in bars if not b.disable):
+            super().emit(record)
+            return
+        try:
+            tqdm.write(self.format(record), file=sys.stderr)
+        except Exception:
+            self.handleError(record)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``satpose`` console script. Returns the exit status."""
     parser = build_parser()
@@ -420,14 +441,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.WARNING - 10 * min(args.verbose, 2),
         format="%(levelname)s %(name)s: %(message)s",
+        handlers=[_BarAwareHandler()],
     )
     handler = getattr(args, "handler", None) or COMMANDS[args.command]
-    from tqdm.contrib.logging import logging_redirect_tqdm
-
     try:
-        # warnings (e.g. bad frames) print above the progress bars, not into them
-        with logging_redirect_tqdm(loggers=[logging.getLogger()]):
-            handler(args)
+        handler(args)
     except SatposeError as exc:
         print(f"satpose {args.command}: error: {exc}", file=sys.stderr)
         return 2
