@@ -340,7 +340,11 @@ def _run(
                     raise RunError(f"{sequence_path}: no estimate: {text}{why}") from None
                 log.warning("%s estimator: %s", name, text)
         main = finals[estimator]
-        causal = estimators[estimator].filtered() if estimator != "offline" else main
+        causal = main
+        if estimator != "offline":
+            causal, why = guarded(f"backend_{estimator}", -1, estimators[estimator].filtered)
+            if causal is None:
+                raise RunError(f"{sequence_path}: no filtered estimate: {why}")
         for name, label in (("offline", "smoothed"), ("online", "isam2_smoothed")):
             if name in finals:
                 e = finals[name]
