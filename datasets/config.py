@@ -20,7 +20,7 @@ from typing import Any, TypeVar
 import numpy as np
 import yaml
 
-from satpose.datasets.errors import ConfigError
+from satpose.datasets.errors import ConfigError, shown
 
 T = TypeVar("T")
 
@@ -42,6 +42,20 @@ def to_plain(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     return obj
+
+
+def yaml_problem(exc: yaml.YAMLError) -> str:
+    """What a PyYAML error says, with where: ``"line 7, column 12: expected ',' or ']', but
+    got '<stream end>' (while parsing a flow sequence)"`` (1-based line and column, as
+    editors count; PyYAML's ``problem_mark`` is 0-based)."""
+    mark = getattr(exc, "problem_mark", None)
+    text = str(exc).strip()
+    problem = getattr(exc, "problem", None) or (text.splitlines()[0] if text else "parse error")
+    context = getattr(exc, "context", None)
+    what = f"{problem} ({context})" if context else str(problem)
+    if mark is None:
+        return what
+    return f"line {mark.line + 1}, column {mark.column + 1}: {what}"
 
 
 def from_plain(cls: type[T], data: Any, where: str = "") -> T:
@@ -67,11 +81,10 @@ def load_config(cls: type[T], path: str | Path) -> T:
         raise ConfigError(f"{p}: cannot read config file ({exc.strerror or exc})") from None
     try:
         data = tomllib.loads(text) if p.suffix == ".toml" else yaml.safe_load(text)
-    except (yaml.YAMLError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(
-            f"{p}: not valid {'TOML' if p.suffix == '.toml' else 'YAML'}: "
-            f"{str(exc).splitlines()[0]}"
-        ) from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: not valid YAML: {yaml_problem(exc)}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {str(exc).splitlines()[0]}") from None
     try:
         return from_plain(cls, data)
     except ConfigError as exc:
@@ -112,11 +125,11 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
             except ConfigError as exc:
                 errors.append(str(exc))
         raise ConfigError(
-            errors[0] if len(errors) == 1 else f"{where}: no accepted type matches {value!r}"
+            errors[0] if len(errors) == 1 else f"{where}: no accepted type matches {shown(value)}"
         )
     if origin is typing.Literal:
         if value not in args:
-            raise ConfigError(f"{where}: must be one of {list(args)}, got {value!r}")
+            raise ConfigError(f"{where}: must be one of {list(args)}, got {shown(value)}")
         return value
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
@@ -145,11 +158,11 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
             return tp[str(value)]
         except KeyError:
             raise ConfigError(
-                f"{where}: must be one of {[m.name for m in tp]}, got {value!r}"
+                f"{where}: must be one of {[m.name for m in tp]}, got {shown(value)}"
             ) from None
     if origin in (tuple, list):
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
+            raise ConfigError(f"{where}: expected a list, got {shown(value)}")
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(value) != len(args):
                 raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
@@ -162,27 +175,27 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
         return tuple(items) if origin is tuple else items
     if origin is dict:
         if not isinstance(value, dict):
-            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
+            raise ConfigError(f"{where}: expected a mapping, got {shown(value)}")
         kt, vt = args if args else (Any, Any)
         return {_convert(kt, k, where): _convert(vt, v, f"{where}.{k}") for k, v in value.items()}
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+            raise ConfigError(f"{where}: expected true or false, got {shown(value)}")
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+            raise ConfigError(f"{where}: expected an integer, got {shown(value)}")
         return int(value)
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
+            raise ConfigError(f"{where}: expected a number, got {shown(value)}")
         out = float(value)
         if not np.isfinite(out):
-            raise ConfigError(f"{where}: must be finite, got {value!r}")
+            raise ConfigError(f"{where}: must be finite, got {shown(value)}")
         return out
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
+            raise ConfigError(f"{where}: expected a string, got {shown(value)}")
         return value
     if tp is Path:
         return Path(value)

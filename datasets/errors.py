@@ -7,6 +7,9 @@ anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 
 class SatposeError(ValueError):
@@ -32,3 +35,22 @@ class SequenceError(SatposeError):
 
 class ConfigError(SatposeError):
     """A configuration file or mapping has an unknown key or an invalid value."""
+
+
+def shown(value: Any) -> str:
+    """A value as an error message shows it: Python's ``repr`` (strings quoted), with numpy
+    scalars and arrays turned into plain numbers and lists first (``20.0``, not
+    ``np.float64(20.0)``), also inside lists, tuples and dicts."""
+    return repr(_plain(value))
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (list, tuple)):
+        return type(value)(_plain(v) for v in value)
+    if isinstance(value, dict):
+        return {_plain(k): _plain(v) for k, v in value.items()}
+    return value

@@ -28,7 +28,8 @@ import pandas as pd
 import yaml
 
 from satpose.datasets.camera import CameraError, PinholeCamera
-from satpose.datasets.errors import SatposeError, SequenceError
+from satpose.datasets.config import yaml_problem
+from satpose.datasets.errors import SatposeError, SequenceError, shown
 from satpose.datasets.geometry import GeometryError, Rigid3, quat_xyzw_to_matrix
 
 FORMAT_VERSION = "satpose-sequence/1"
@@ -375,7 +376,9 @@ def _read_yaml(path: Path, required: bool) -> dict[str, Any]:
         return {}
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+    except yaml.YAMLError as exc:
+        raise SequenceError(path, None, f"not valid YAML: {yaml_problem(exc)}") from None
+    except UnicodeDecodeError as exc:
         raise SequenceError(path, None, f"not valid YAML: {str(exc).splitlines()[0]}") from None
     if not isinstance(data, dict):
         raise SequenceError(path, None, "must hold a YAML mapping at the top level")
@@ -384,16 +387,16 @@ def _read_yaml(path: Path, required: bool) -> dict[str, Any]:
 
 def _number(value: Any, path: Path, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SequenceError(path, name, f"must be a number, got {value!r}")
+        raise SequenceError(path, name, f"must be a number, got {shown(value)}")
     out = float(value)
     if not math.isfinite(out):
-        raise SequenceError(path, name, f"must be finite, got {value!r}")
+        raise SequenceError(path, name, f"must be finite, got {shown(value)}")
     return out
 
 
 def _vector(value: Any, n: int | None, path: Path, name: str) -> np.ndarray:
     if not isinstance(value, (list, tuple)):
-        raise SequenceError(path, name, f"must be a list of numbers, got {value!r}")
+        raise SequenceError(path, name, f"must be a list of numbers, got {shown(value)}")
     if n is not None and len(value) != n:
         raise SequenceError(path, name, f"expected {n} numbers, got {len(value)}")
     return np.array([_number(v, path, f"{name}[{i}]") for i, v in enumerate(value)])
@@ -408,7 +411,7 @@ def _read_camera(raw: Any, path: Path, name: str) -> PinholeCamera:
     for key in ("width", "height"):
         if isinstance(raw[key], bool) or not isinstance(raw[key], int) or raw[key] <= 0:
             raise SequenceError(
-                path, f"{name}.{key}", f"must be a positive integer, got {raw[key]!r}"
+                path, f"{name}.{key}", f"must be a positive integer, got {shown(raw[key])}"
             )
     K = _vector(raw["K"], 9, path, f"{name}.K")
     dist = _vector(raw.get("dist", [0.0] * 5), None, path, f"{name}.dist")
@@ -494,12 +497,12 @@ def _numeric_column(df: pd.DataFrame, col: str, path: Path, integer: bool = Fals
         raise SequenceError(
             path,
             col,
-            f"row {row + 1}: value {df[col].iloc[row]!r} is NaN, infinite or not a number",
+            f"row {row + 1}: value {shown(df[col].iloc[row])} is NaN, infinite or not a number",
         )
     if integer:
         if np.any(values != np.round(values)):
             row = int(np.flatnonzero(values != np.round(values))[0])
-            raise SequenceError(path, col, f"row {row + 1}: {values[row]!r} is not an integer")
+            raise SequenceError(path, col, f"row {row + 1}: {shown(values[row])} is not an integer")
         return values.astype(np.int64)
     return values
 
@@ -511,8 +514,8 @@ def _check_increasing(values: np.ndarray, path: Path, col: str) -> None:
         raise SequenceError(
             path,
             col,
-            f"row {row + 1}: {values[row]!r} is not strictly greater "
-            f"than the previous row's {values[row - 1]!r}",
+            f"row {row + 1}: {shown(values[row])} is not strictly greater "
+            f"than the previous row's {shown(values[row - 1])}",
         )
 
 

@@ -187,12 +187,22 @@ def refine_ellipse(
             step = np.linalg.lstsq(J, -r, rcond=None)[0]
         except np.linalg.LinAlgError:
             raise ConicError("ellipse refinement is degenerate") from None
+        if not np.all(np.isfinite(step)):
+            raise ConicError("ellipse refinement diverged (non-finite step)")
+        # Trust region: no step moves the centre or an axis by more than the current major
+        # axis (a converging fit takes far smaller steps; a diverging one runs off to
+        # infinity). The angle is periodic and left alone (free on a near-circle).
+        ratio = float(np.abs(step[:4]).max()) / max(abs(x[2]), abs(x[3]), 1e-3)
+        if ratio > 1.0:
+            step = step / ratio
         x = x + step
         if np.abs(step[:4]).max() < 1e-9 and abs(step[4]) < 1e-11:
             break
         if np.abs(step[:4]).max() > 0.05 * min(abs(x[2]), abs(x[3])) or abs(step[4]) > 0.05:
             t = None  # a large step: the old feet may lead Newton to a far foot point
     r, J, _ = _orthogonal_residuals(p, x, t)
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+        raise ConicError("ellipse refinement diverged")
     rms = float(np.sqrt(np.mean(r**2)))
     s2 = (sigma_px**2) if sigma_px is not None else float(r @ r) / max(n - 5, 1)
     JtJ = J.T @ J

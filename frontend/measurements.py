@@ -33,6 +33,19 @@ class MeasurementError(SatposeError):
     """A measurement was built from invalid numbers."""
 
 
+INTERNAL_ERROR = "internal error"
+"""Marks the failure note of a stage that raised an unexpected exception (`exception_failure`)."""
+
+
+def exception_failure(stage: str, exc: BaseException) -> str:
+    """The failure note of a stage that raised ``exc`` unexpectedly, for ``failures``:
+    ``"<stage>: internal error: <ExceptionType>: <first line of the message>"``. The type and
+    message are kept so that the bug stays findable (the traceback goes to the DEBUG log)."""
+    text = str(exc).strip()
+    first = text.splitlines()[0] if text else ""
+    return f"{stage}: {INTERNAL_ERROR}: {type(exc).__name__}" + (f": {first}" if first else "")
+
+
 def _array(value: object, shape: tuple[int, ...], name: str) -> np.ndarray:
     a = np.array(value, dtype=float)
     if a.shape != shape:

@@ -15,11 +15,15 @@ Per frame (timings of each stage go into ``FrameMeasurements.timings_ms``):
 6. ``pose``: the per-frame pose in the non-cooperative target frame (`TargetFrameTracker`).
 
 Nothing here raises on bad images (black, saturated, ring out of view): the frame yields
-fewer measurements and the reasons in ``failures``.
+fewer measurements and the reasons in ``failures``. Nor on a bug: an unexpected exception
+inside a stage ends that frame only, as the failure ``"<stage>: internal error: <type>:
+<message>"`` (traceback at DEBUG level), and the image trackers start afresh on the next
+frame.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -40,6 +44,7 @@ from satpose.frontend.measurements import (
     LandmarkKind,
     LandmarkMeasurement,
     RingMeasurement,
+    exception_failure,
 )
 from satpose.frontend.orb import OrbConfig, OrbTracker, epnp_ransac
 from satpose.frontend.panel import (
@@ -62,6 +67,8 @@ from satpose.frontend.stereo import (
     tangent_basis,
     triangulate,
 )
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -108,8 +115,11 @@ class FrontendConfig:
 
 
 class _Timer:
+    """Wall time per stage [ms]; ``failed``: the stage an exception left (the innermost)."""
+
     def __init__(self) -> None:
         self.ms: dict[str, float] = {}
+        self.failed: str | None = None
 
     def __call__(self, name: str) -> _Stage:
         return _Stage(self, name)
@@ -122,9 +132,11 @@ class _Stage:
     def __enter__(self) -> None:
         self.t0 = time.perf_counter()
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: object, *exc: object) -> None:
         dt = (time.perf_counter() - self.t0) * 1000.0
         self.timer.ms[self.name] = self.timer.ms.get(self.name, 0.0) + dt
+        if exc_type is not None and self.timer.failed is None:
+            self.timer.failed = self.name
 
 
 class StereoFrontend:
@@ -171,18 +183,51 @@ class StereoFrontend:
             left, right = frame.left(), frame.right()
         except SatposeError as exc:
             return FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(f"image: {exc}",))
+        except Exception as exc:  # e.g. a decoder error on a corrupt file: a bug to report
+            log.debug("frame %d: reading the images raised", frame.index, exc_info=True)
+            return FrameMeasurements(
+                frame=frame.index, t_s=frame.t_s, failures=(exception_failure("image", exc),)
+            )
         return self.process(frame.index, frame.t_s, left, right)
 
     def process(
         self, index: int, t_s: float, left: np.ndarray, right: np.ndarray
     ) -> FrameMeasurements:
-        """Measure one stereo frame.
+        """Measure one stereo frame (never raises: an unexpected exception in a stage becomes
+        that frame's failure ``"<stage>: internal error: ..."`` and resets the trackers).
 
         Args:
             index, t_s: frame index and time [s].
             left, right: raw images as stored (grey or BGR, 8 or 16 bit, with distortion).
         """
         timer = _Timer()
+        try:
+            return self._process(index, t_s, left, right, timer)
+        except Exception as exc:
+            stage = timer.failed or "frontend"
+            log.debug("frame %d: stage %s raised", index, stage, exc_info=True)
+            self.reset_tracking()
+            return FrameMeasurements(
+                frame=index,
+                t_s=t_s,
+                failures=(exception_failure(stage, exc),),
+                timings_ms=timer.ms,
+            )
+
+    def reset_tracking(self) -> None:
+        """Forget the image tracks (ring, panel, ORB) and the motion history: the next frame
+        acquires afresh. The target-frame map is kept (it is only read through a pose)."""
+        for ring in self.rings.values():
+            ring.reset()
+        for panel in self.panels.values():
+            panel.reset()
+        self.orb.reset()
+        self.landmarks.reset()
+        self._history = []
+
+    def _process(
+        self, index: int, t_s: float, left: np.ndarray, right: np.ndarray, timer: _Timer
+    ) -> FrameMeasurements:
         failures: list[str] = []
         with timer("undistort"):
             try:

@@ -409,6 +409,8 @@ def _gauss_newton(
             dx = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             raise GeometryFailure("the pose is not constrained") from None
+        if not np.all(np.isfinite(dx)):
+            raise GeometryFailure("the pose fit diverged (non-finite step)")
         T = Rigid3(R=T.R @ rotvec_to_matrix(dx[:3]), t=T.t + T.R @ dx[3:])
         if np.abs(dx).max() < 1e-10:
             break

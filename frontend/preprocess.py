@@ -42,7 +42,8 @@ class PreparedImage:
     Attributes:
         gray: (H, W) float32 in [0, 1], undistorted.
         gray8: the same as uint8 (for OpenCV functions that need 8-bit input).
-        problem: why the image is unusable (``"too dark"``, ``"saturated"``), or None.
+        problem: why the image is unusable (``"too dark"``, ``"saturated"``,
+            ``"non-finite pixel values (NaN/inf) in N pixels"``), or None.
     """
 
     gray: np.ndarray
@@ -86,7 +87,7 @@ class Undistorter:
                 borderMode=cv2.BORDER_CONSTANT,
                 borderValue=0.0,
             )
-        return self._prepared(gray)
+        return self._prepared(gray, _nonfinite(img))
 
     def crop(self, image: np.ndarray, box: tuple[int, int, int, int]) -> PreparedImage:
         """`__call__` restricted to the undistorted pixels ``x0 <= x < x1, y0 <= y < y1``
@@ -131,7 +132,7 @@ class Undistorter:
                 borderMode=cv2.BORDER_CONSTANT,
                 borderValue=0.0,
             )
-        return self._prepared(np.ascontiguousarray(gray))
+        return self._prepared(np.ascontiguousarray(gray), _nonfinite(img[y0:y1, x0:x1]))
 
     def _gray(self, img: np.ndarray) -> np.ndarray:
         """(H, W) float32 grey in [0, 1] of an (H, W[, 3]) uint8/uint16/float image."""
@@ -148,15 +149,19 @@ class Undistorter:
             img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_BGR2GRAY)
         return img.astype(np.float32) * np.float32(scale)
 
-    def _prepared(self, gray: np.ndarray) -> PreparedImage:
-        """The 8-bit copy and the image checks of an undistorted grey image."""
+    def _prepared(self, gray: np.ndarray, nonfinite: int = 0) -> PreparedImage:
+        """The 8-bit copy and the image checks of an undistorted grey image (``nonfinite``:
+        NaN/inf pixels of the input, zeroed in ``gray``; any makes the image unusable: no
+        camera writes them, so the data is corrupt)."""
         # Rounded, saturated 8-bit copy (OpenCV: far faster than numpy's clip + astype).
         gray8 = cv2.convertScaleAbs(np.maximum(gray, 0.0), alpha=255.0)
         # Image checks from the 8-bit histogram (1/255 resolution is plenty for them).
         hist = cv2.calcHist([gray8], [0], None, [256], [0, 256]).ravel()
         cum = np.cumsum(hist) / gray8.size
         problem = None
-        if np.searchsorted(cum, 0.995) / 255.0 < self.config.dark_level:
+        if nonfinite:
+            problem = f"non-finite pixel values (NaN/inf) in {nonfinite} pixels"
+        elif np.searchsorted(cum, 0.995) / 255.0 < self.config.dark_level:
             problem = "too dark"
         elif 1.0 - cum[253] > self.config.saturated_fraction:  # pixels >= 254/255
             problem = "saturated"
@@ -166,3 +171,11 @@ class Undistorter:
         """Raw (distorted) pixels (N, 2) to undistorted pixels (N, 2)."""
         xy = self.camera.undistort_points(pixels)
         return self.camera.normalized_to_pixels(xy, distort=False)
+
+
+def _nonfinite(img: np.ndarray) -> int:
+    """Number of pixels of ``img`` (H, W[, C]) with a NaN or infinite value (0 for integers)."""
+    if not np.issubdtype(img.dtype, np.floating):
+        return 0
+    bad = ~np.isfinite(img)
+    return int(np.count_nonzero(bad.any(axis=2) if bad.ndim == 3 else bad))

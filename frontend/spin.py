@@ -37,6 +37,7 @@ numpy and OpenCV only (the frontend never imports gtsam).
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import deque
@@ -48,10 +49,17 @@ import cv2
 import numpy as np
 
 from satpose.datasets.camera import PinholeCamera
-from satpose.datasets.errors import ConfigError
+from satpose.datasets.errors import ConfigError, SatposeError
 from satpose.datasets.sequence import Frame
-from satpose.frontend.measurements import FrameMeasurements, SpinRateMeasurement, SpinStatus
+from satpose.frontend.measurements import (
+    FrameMeasurements,
+    SpinRateMeasurement,
+    SpinStatus,
+    exception_failure,
+)
 from satpose.frontend.preprocess import PreprocessConfig, Undistorter
+
+_log = logging.getLogger(__name__)
 
 # --------------------------------------------------------------------------------------------
 # Configuration
@@ -1160,24 +1168,47 @@ class SpinFrontend:
         )
 
     def process_frame(self, frame: Frame) -> FrameMeasurements:
-        """`process` on a sequence frame (its left, or only, image)."""
-        return self.process(frame.index, frame.t_s, frame.left())
+        """`process` on a sequence frame (its left, or only, image); an unreadable image is
+        a frame without an angle (failure ``"image: ..."``), not an exception."""
+        try:
+            image = frame.left()
+        except SatposeError as exc:
+            return self.process(frame.index, frame.t_s, None, failure=f"image: {exc}")
+        return self.process(frame.index, frame.t_s, image)
 
-    def process(self, frame: int, t_s: float, image: np.ndarray) -> FrameMeasurements:
-        """One frame: ``image`` (H, W) grey or (H, W, 3) BGR, uint8 or uint16, as stored.
+    def process(
+        self, frame: int, t_s: float, image: np.ndarray | None, failure: str | None = None
+    ) -> FrameMeasurements:
+        """One frame: ``image`` (H, W) grey or (H, W, 3) BGR, uint8 or uint16, as stored;
+        None with a ``failure`` note for a frame without a usable image. An unexpected
+        exception while measuring the angle or the rate is the frame's failure
+        (``"spin: internal error: ..."``, traceback at DEBUG), not the caller's.
 
         Returns:
             The frame's measurements: ``spin`` once the buffer is full (accepted or refused),
             ``failures`` when the frame has no usable angle, per-stage ``timings_ms``.
         """
         timings: dict[str, float] = {}
-        obs = self._angle(image, timings)
+        notes: list[str] = []
+        if image is None:
+            obs = AngleObservation.failed(failure or "image: missing")
+        else:
+            try:
+                obs = self._angle(image, timings)
+            except Exception as exc:
+                _log.debug("frame %d: spin angle raised", frame, exc_info=True)
+                obs = AngleObservation.failed(exception_failure("spin", exc))
         t0 = time.perf_counter()
-        fit = self.rate.add(t_s, obs.angle_rad)
+        fit: SpinFit | None = None
+        try:
+            fit = self.rate.add(t_s, obs.angle_rad)
+        except Exception as exc:
+            _log.debug("frame %d: spin rate raised", frame, exc_info=True)
+            notes.append(exception_failure("spin_rate", exc))
         timings["rate"] = 1e3 * (time.perf_counter() - t0)
         if self.hook is not None:
             self.hook(SpinStep(frame=frame, t_s=t_s, angle=obs, fit=fit))
-        failures = () if obs.failure is None else (obs.failure,)
+        failures = tuple(([obs.failure] if obs.failure is not None else []) + notes)
         return FrameMeasurements(
             frame=frame,
             t_s=t_s,

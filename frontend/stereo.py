@@ -395,19 +395,29 @@ def refine_circle(
         return np.concatenate(res), np.vstack(jac)
 
     c, n, r = np.asarray(center, float), np.asarray(normal, float), float(radius)
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(n)) and math.isfinite(r) and r > 0):
+        raise GeometryFailure("the ring circle fit has no finite starting circle")
+    diverged = "the ring circle fit diverged (ring seen nearly edge-on)"
     try:
         for _ in range(iterations):
             r0, J = linearise(c, n, r)
-            step = np.linalg.lstsq(J, -r0, rcond=None)[0]
+            if not (np.all(np.isfinite(r0)) and np.all(np.isfinite(J))):
+                raise GeometryFailure(diverged)
+            step = _bounded_circle_step(np.linalg.lstsq(J, -r0, rcond=None)[0], r)
             c, n, r = unpack(step, c, n, r)
             if np.abs(step[:3]).max() < 1e-7 and np.abs(step[3:]).max() < 1e-8:
                 break
         res, J = linearise(c, n, r)
-    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
-        # An edge-on ring: the conics degenerate (singular homography) or diverge.
-        raise GeometryFailure("the ring circle fit diverged (ring seen nearly edge-on)") from None
+    except GeometryFailure:
+        raise
+    except (np.linalg.LinAlgError, ArithmeticError, ValueError):
+        # An edge-on ring: the conics degenerate (singular homography) or diverge
+        # (ArithmeticError: OverflowError, FloatingPointError, ZeroDivisionError).
+        raise GeometryFailure(diverged) from None
     if not (np.all(np.isfinite(res)) and np.all(np.isfinite(J))):
-        raise GeometryFailure("the ring circle fit diverged (ring seen nearly edge-on)")
+        raise GeometryFailure(diverged)
+    if not (math.isfinite(r) and r > 0 and c[2] > 0):
+        raise GeometryFailure(diverged)
     s2 = sigma_px**2 if sigma_px is not None else float(res @ res) / max(res.size - 6, 1)
     try:
         cov6 = np.linalg.inv(J.T @ J) * s2
@@ -424,6 +434,30 @@ def refine_circle(
     if n @ c > 0:
         n = -n
     return Circle3D(center=c, normal=n, radius=r, covariance=0.5 * (cov7 + cov7.T))
+
+
+MAX_CIRCLE_STEP = (0.5, 0.3, 0.3)
+"""Trust region of one `refine_circle` step: centre move in ring radii, normal tilt [rad],
+change of log(radius). A Gauss-Newton step beyond it is shortened along its direction
+(far outside what a converging fit takes from the eqs. 6-8 start; a diverging step, e.g.
+on a nearly edge-on ring, would otherwise overflow ``exp`` or leave the cone)."""
+
+
+def _bounded_circle_step(step: np.ndarray, radius: float) -> np.ndarray:
+    """``step`` (6,) = ``[dc (m), du, dv, dlog r]`` scaled down into `MAX_CIRCLE_STEP`.
+
+    Raises:
+        GeometryFailure: the step is not finite (a singular or NaN system).
+    """
+    if not np.all(np.isfinite(step)):
+        raise GeometryFailure("the ring circle fit diverged (non-finite step)")
+    c_max, n_max, r_max = MAX_CIRCLE_STEP
+    ratio = max(
+        float(np.linalg.norm(step[:3])) / (c_max * radius),
+        float(np.linalg.norm(step[3:5])) / n_max,
+        abs(float(step[5])) / r_max,
+    )
+    return step / ratio if ratio > 1.0 else step
 
 
 def circle_rms(

@@ -16,15 +16,19 @@ DIR (written to a temporary folder, then renamed):
 - ``overlay/NNNNNN.png``: every ``--overlay-every``-th frame with the LSD segments, strut
   candidates, the chosen struts, the points and (if known) the projected truth;
 - ``errors.csv`` (with ground truth): per-frame and smoothed position / rotation errors.
+
+A frame that cannot be measured (unreadable image, an exception inside the detection or the
+solver) has no pose and its reason in points.csv; bad frames are named as warnings and
+counted in the summary (``bad_frames``).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import logging
 import math
 import shutil
-import uuid
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +37,7 @@ import numpy as np
 
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec
-from satpose.datasets.sequence import Sequence, load_sequence, replace_dir
+from satpose.datasets.sequence import Sequence, load_sequence
 from satpose.frontend.bracket import (
     BracketConfig,
     BracketGeometry,
@@ -43,9 +47,12 @@ from satpose.frontend.bracket import (
     to_frame_measurements,
 )
 from satpose.frontend.bracket_lines import StrutDetection, StrutDetectorConfig, detect_struts
-from satpose.frontend.measurements import FrameMeasurements
+from satpose.frontend.measurements import FrameMeasurements, exception_failure
 from satpose.frontend.preprocess import Undistorter
-from satpose.tools.files import write_tum
+from satpose.tools.badframes import BadFrames
+from satpose.tools.files import check_out, staged_output, write_tum
+
+log = logging.getLogger(__name__)
 
 POINT_COLUMNS = "frame t_s p1_x p1_y p2_x p2_y p3_x p3_y p4_x p4_y sigma_px reason".split()
 ERROR_COLUMNS = (
@@ -142,8 +149,7 @@ def run_bracket(
     10x the backend's: with 1 s between frames the backend's 1e-5 makes iSAM2's system
     indeterminate at the first twist (seen on `bracket-final`)."""
     seq = load_sequence(sequence_path)
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise BracketRunError(f"{out}: folder exists and is not empty (use --overwrite)")
+    check_out(out, overwrite, error=BracketRunError)
     geo, fraction = bracket_from_target(seq, side)
     if fraction is not None:
         geo = BracketGeometry(vertices_m=geo.vertices_m, visible_fraction=fraction)
@@ -152,56 +158,87 @@ def run_bracket(
     K = cam.K
     det_cfg = StrutDetectorConfig() if detector is None else detector
     solver = BracketConfig()
-    stage = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
-    (stage / "overlay").mkdir(parents=True)
-    try:
+    bad = BadFrames(seq.root)
+    with staged_output(out, overwrite, error=BracketRunError) as stage:
+        (stage / "overlay").mkdir()
         frames: list[FrameMeasurements] = []
         per_frame: list[tuple[float, Rigid3]] = []
         rows: list[list[Any]] = []
         prev: BracketResult | None = None
         for k, fr in enumerate(seq.frames):
-            prep = und(fr.left())
-            truth = None
-            if seq.truth is not None:
+            n0 = (len(frames), len(per_frame), len(rows))
+            prev_before = prev
+            why: str | None = None
+            try:
+                image = fr.left()
+            except SatposeError as exc:
+                why = f"image: {exc}"
+            else:
                 try:
-                    truth = seq.truth.pose(seq.truth.row_of_frame(fr.index))
-                except KeyError:
+                    prep = und(image)
                     truth = None
-            result: BracketResult | None = None
-            if prep.problem is not None:
-                det = StrutDetection(None, None, np.zeros((0, 4)), reason=f"image {prep.problem}")
-            else:
-                predicted = prev.pose if prev is not None else None
-                det = detect_struts(prep.gray8, K, geo, det_cfg, predicted=predicted)
-                if det.observation is None and predicted is not None:
-                    # lost: search again, keeping the labelling closest to the last attitude
-                    det = detect_struts(prep.gray8, K, geo, det_cfg, reference=predicted)
-                if det.observation is not None:
-                    prior = (
-                        prev.depths_m
-                        if prev is not None and det.hypotheses == 1
-                        else (det.result.depths_m if det.result is not None else None)
+                    if seq.truth is not None:
+                        try:
+                            truth = seq.truth.pose(seq.truth.row_of_frame(fr.index))
+                        except KeyError:
+                            truth = None
+                    result: BracketResult | None = None
+                    if prep.problem is not None:
+                        det = StrutDetection(
+                            None, None, np.zeros((0, 4)), reason=f"image {prep.problem}"
+                        )
+                    else:
+                        predicted = prev.pose if prev is not None else None
+                        det = detect_struts(prep.gray8, K, geo, det_cfg, predicted=predicted)
+                        if det.observation is None and predicted is not None:
+                            # lost: search again, keeping the labelling closest to the last attitude
+                            det = detect_struts(prep.gray8, K, geo, det_cfg, reference=predicted)
+                        if det.observation is not None:
+                            prior = (
+                                prev.depths_m
+                                if prev is not None and det.hypotheses == 1
+                                else (det.result.depths_m if det.result is not None else None)
+                            )
+                            result = solve_bracket(
+                                det.observation, geo, K, solver, prior_depths=prior
+                            )
+                    reason = det.reason if result is None else result.reason
+                    if result is not None and result.pose is not None:
+                        prev = result
+                        per_frame.append((fr.t_s, result.pose))
+                        frames.append(to_frame_measurements(result, fr.index, fr.t_s))
+                    else:
+                        frames.append(
+                            FrameMeasurements(
+                                frame=fr.index,
+                                t_s=fr.t_s,
+                                failures=(f"bracket: {reason or 'no pose'}",),
+                            )
+                        )
+                    obs = det.observation
+                    pts = obs.points().ravel().tolist() if obs is not None else [math.nan] * 8
+                    rows.append(
+                        [
+                            fr.index,
+                            fr.t_s,
+                            *pts,
+                            obs.sigma_px if obs is not None else math.nan,
+                            reason,
+                        ]
                     )
-                    result = solve_bracket(det.observation, geo, K, solver, prior_depths=prior)
-            reason = det.reason if result is None else result.reason
-            if result is not None and result.pose is not None:
-                prev = result
-                per_frame.append((fr.t_s, result.pose))
-                frames.append(to_frame_measurements(result, fr.index, fr.t_s))
-            else:
-                frames.append(
-                    FrameMeasurements(
-                        frame=fr.index, t_s=fr.t_s, failures=(f"bracket: {reason or 'no pose'}",)
-                    )
-                )
-            obs = det.observation
-            pts = obs.points().ravel().tolist() if obs is not None else [math.nan] * 8
-            rows.append(
-                [fr.index, fr.t_s, *pts, obs.sigma_px if obs is not None else math.nan, reason]
-            )
-            if overlay_every > 0 and k % overlay_every == 0:
-                img = draw_overlay(prep.gray8, det, result, geo, K, truth)
-                cv2.imwrite(str(stage / "overlay" / f"{fr.index:06d}.png"), img)
+                    if overlay_every > 0 and k % overlay_every == 0:
+                        img = draw_overlay(prep.gray8, det, result, geo, K, truth)
+                        cv2.imwrite(str(stage / "overlay" / f"{fr.index:06d}.png"), img)
+                except Exception as exc:
+                    log.debug("frame %d: bracket raised", fr.index, exc_info=True)
+                    why = exception_failure("bracket", exc)
+                    prev = prev_before
+            if why is not None:
+                # a frame without a pose: drop what a failed step had added
+                del frames[n0[0] :], per_frame[n0[1] :], rows[n0[2] :]
+                frames.append(FrameMeasurements(frame=fr.index, t_s=fr.t_s, failures=(why,)))
+                rows.append([fr.index, fr.t_s, *[math.nan] * 8, math.nan, why])
+            bad.note(fr.index, frames[-1].failures, (fr.left_path,))
         with open(stage / "points.csv", "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(POINT_COLUMNS)
@@ -280,13 +317,8 @@ def run_bracket(
                 v = E[:, col][np.isfinite(E[:, col])]
                 if v.size:
                     summary[name] = float(np.sqrt(np.mean(v**2)) * unit)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if out.exists() and not any(out.iterdir()):
-            out.rmdir()
-        replace_dir(stage, out, overwrite=True)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
+        if bad.count:
+            summary["bad_frames"] = bad.summary(len(seq.frames))
     return summary
 
 

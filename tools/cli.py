@@ -107,6 +107,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="YAML/TOML frontend config (unknown keys are refused)",
     )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing frontend output folder (once the new one is complete)",
+    )
 
     p = sub.add_parser(
         "run",
@@ -180,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _scenario_from_args(args: argparse.Namespace) -> Scenario:
-    from satpose.datasets.config import replace_nested
+    from satpose.datasets.config import replace_nested, yaml_problem
     from satpose.datasets.scenarios import preset, scaled
 
     scenario = preset(args.preset)
@@ -190,9 +195,7 @@ def _scenario_from_args(args: argparse.Namespace) -> Scenario:
         except OSError as exc:
             raise ConfigError(f"{args.config}: cannot read ({exc.strerror or exc})") from None
         except yaml.YAMLError as exc:
-            raise ConfigError(
-                f"{args.config}: not valid YAML: {str(exc).splitlines()[0]}"
-            ) from None
+            raise ConfigError(f"{args.config}: not valid YAML: {yaml_problem(exc)}") from None
         if not isinstance(overrides, dict):
             raise ConfigError(f"{args.config}: must hold a mapping of scenario overrides")
         try:
@@ -237,14 +240,23 @@ def cmd_render(args: argparse.Namespace) -> None:
     _render(_scenario_from_args(args), args.out, args.overwrite)
 
 
-def run_frontend_on(sequence_path: Path, out: Path, config_path: Path | None) -> None:
-    """Frontend over a whole sequence, with a progress bar; writes the result files."""
+def run_frontend_on(
+    sequence_path: Path, out: Path, config_path: Path | None, overwrite: bool = False
+) -> None:
+    """Frontend over a whole sequence, with a progress bar; writes the result files into a
+    staging folder renamed to ``out`` at the end (an existing frontend output folder is
+    replaced only with ``overwrite``). A frame that raises is that frame's failure; bad
+    frames are named as warnings and counted in the summary line."""
+    from functools import partial
+
     from tqdm import tqdm
 
     from satpose.datasets.config import load_config, to_plain
     from satpose.datasets.sequence import load_sequence
+    from satpose.frontend.measurements import FrameMeasurements
     from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
-    from satpose.tools.files import atomic_write, prepare_out, write_measurements, write_tum
+    from satpose.tools.badframes import BadFrames, guarded
+    from satpose.tools.files import atomic_write, staged_output, write_measurements, write_tum
 
     seq = load_sequence(sequence_path)
     if seq.kind != "stereo":
@@ -252,27 +264,32 @@ def run_frontend_on(sequence_path: Path, out: Path, config_path: Path | None) ->
             f"{sequence_path}: the stereo frontend needs a stereo sequence (this one is {seq.kind})"
         )
     config = load_config(FrontendConfig, config_path) if config_path else FrontendConfig()
-    prepare_out(out)
-    frontend = StereoFrontend(seq.calibration, config)
-    results = []
-    for frame in tqdm(
-        seq,
-        desc=f"frontend {seq.name}",
-        unit="frame",
-        file=sys.stderr,
-        dynamic_ncols=True,
-        delay=0.5,
-    ):
-        results.append(frontend.process_frame(frame))
-    write_measurements(results, out / "measurements.parquet")
-    with_pose = [m for m in results if m.pose is not None]
-    write_tum(
-        [m.t_s for m in with_pose],
-        [m.pose.left_cam_from_target for m in with_pose],
-        out / "frontend_pose.tum",
-    )
-    text = yaml.safe_dump({"frontend": to_plain(config)}, sort_keys=False)
-    atomic_write(out / "config.yaml", lambda tmp: Path(tmp).write_text(text))
+    with staged_output(out, overwrite, marker="measurements.parquet", what="a frontend") as stage:
+        frontend = StereoFrontend(seq.calibration, config)
+        bad = BadFrames(seq.root)
+        results = []
+        for frame in tqdm(
+            seq,
+            desc=f"frontend {seq.name}",
+            unit="frame",
+            file=sys.stderr,
+            dynamic_ncols=True,
+            delay=0.5,
+        ):
+            m, why = guarded("frontend", frame.index, partial(frontend.process_frame, frame))
+            if m is None:
+                m = FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(str(why),))
+            bad.note(frame.index, m.failures, (frame.left_path, frame.right_path))
+            results.append(m)
+        write_measurements(results, stage / "measurements.parquet")
+        with_pose = [m for m in results if m.pose is not None]
+        write_tum(
+            [m.t_s for m in with_pose],
+            [m.pose.left_cam_from_target for m in with_pose],
+            stage / "frontend_pose.tum",
+        )
+        text = yaml.safe_dump({"frontend": to_plain(config)}, sort_keys=False)
+        atomic_write(stage / "config.yaml", lambda tmp: Path(tmp).write_text(text))
     totals = [sum(m.timings_ms.values()) for m in results]
     rings = sum(m.ring is not None for m in results)
     print(
@@ -280,10 +297,12 @@ def run_frontend_on(sequence_path: Path, out: Path, config_path: Path | None) ->
         f"{np.median(totals):.0f} ms per frame (median); wrote {out}/measurements.parquet, "
         f"{out}/frontend_pose.tum"
     )
+    if bad.count:
+        print(bad.summary(len(results)))
 
 
 def cmd_frontend(args: argparse.Namespace) -> None:
-    run_frontend_on(args.sequence, args.out, args.config)
+    run_frontend_on(args.sequence, args.out, args.config, overwrite=args.overwrite)
 
 
 def cmd_run(args: argparse.Namespace) -> None:
@@ -320,6 +339,8 @@ def cmd_run(args: argparse.Namespace) -> None:
         f"{len(result.estimate)} frames in {args.out}/trajectory.csv; recording "
         f"{args.out}/run.rrd (open: rerun {args.out}/run.rrd)"
     )
+    if result.bad_frames.count:
+        print(result.bad_frames.summary(n))
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
@@ -399,6 +420,27 @@ EXTRA_COMMANDS: list[Callable[[Any], None]] = [
 ]
 
 
+class _BarAwareHandler(logging.StreamHandler):
+    """Log lines on stderr that print above a visible progress bar instead of into it
+    (``tqdm.write``), and plainly while no bar is shown (a bar still within its ``delay``
+    must not be drawn by the write: it would then never be ended by its ``close``)."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from tqdm import tqdm
+
+        bars = list(getattr(tqdm, "_instances", ()))
+        if not any(b.last_print_t >= b.start_t + b.delay for b in bars if not b.disable):
+            super().emit(record)
+            return
+        try:
+            tqdm.write(self.format(record), file=sys.stderr)
+        except Exception:
+            self.handleError(record)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``satpose`` console script. Returns the exit status."""
     parser = build_parser()
@@ -406,6 +448,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.WARNING - 10 * min(args.verbose, 2),
         format="%(levelname)s %(name)s: %(message)s",
+        handlers=[_BarAwareHandler()],
     )
     handler = getattr(args, "handler", None) or COMMANDS[args.command]
     try:

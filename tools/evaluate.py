@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 from scipy.stats import chi2
 
 from satpose.backend import Estimate
@@ -44,7 +43,7 @@ from satpose.tools.metrics import (
     pose_errors,
     relative_errors,
 )
-from satpose.tools.pipeline import read_estimate_npz
+from satpose.tools.pipeline import read_estimate_npz, read_provenance
 
 
 class EvalError(SatposeError):
@@ -119,9 +118,7 @@ def nees(est: Estimate, truth: list[Rigid3], offset: np.ndarray) -> np.ndarray:
 def _load(run: Path) -> list[Trajectory]:
     out = []
     estimator = "estimate"
-    if (run / "run.yaml").is_file():
-        prov = yaml.safe_load((run / "run.yaml").read_text()) or {}
-        estimator = str(prov.get("estimator", estimator))
+    estimator = str(read_provenance(run).get("estimator", estimator))
     main = {"online": "online filtered", "kalman": "kalman"}.get(estimator, estimator)
     files = {"estimate.npz": main, **COMPARISON_FILES}
     seen = set()

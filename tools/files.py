@@ -27,8 +27,11 @@ TUM: ``t tx ty tz qx qy qz qw`` per line, space separated (readable by evo).
 from __future__ import annotations
 
 import os
+import shutil
+import uuid
 from collections import defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +40,7 @@ import pandas as pd
 
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3
-from satpose.datasets.sequence import atomic_write
+from satpose.datasets.sequence import atomic_write, replace_dir
 from satpose.frontend.measurements import (
     EllipseObservation,
     FrameMeasurements,
@@ -62,6 +65,71 @@ def prepare_out(out: Path) -> None:
         ) from None
     if not os.access(out, os.W_OK):
         raise ResultFileError(f"{out}: output folder is not writable")
+
+
+def check_out(
+    out: Path,
+    overwrite: bool,
+    *,
+    marker: str | None = None,
+    what: str = "an output",
+    error: type[SatposeError] = ResultFileError,
+) -> None:
+    """Refuse an output folder we must not replace, before any work is done.
+
+    A missing or empty folder is fine. A non-empty one is replaced only with ``overwrite``
+    and, when ``marker`` is given, only if it holds that file (it is then one of ours: a
+    ``what`` folder, e.g. ``"a run"``); any other non-empty folder is never touched.
+    """
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise error(f"{out}: exists and is not a folder")
+    if not any(out.iterdir()):
+        return
+    if marker is not None and not (out / marker).is_file():
+        raise error(f"{out}: folder is not empty and not {what} folder (no {marker})")
+    if not overwrite:
+        raise error(f"{out}: {what} folder already exists (choose another folder or --overwrite)")
+
+
+def make_stage(out: Path, error: type[SatposeError] = ResultFileError) -> Path:
+    """An empty hidden folder next to ``out`` (``.<name>.tmp-xxxxxxxx``) to build it in."""
+    stage = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        stage.mkdir()
+    except OSError as exc:
+        raise error(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
+    return stage
+
+
+@contextmanager
+def staged_output(
+    out: Path,
+    overwrite: bool,
+    *,
+    marker: str | None = None,
+    what: str = "an output",
+    error: type[SatposeError] = ResultFileError,
+) -> Iterator[Path]:
+    """Build the output folder ``out`` in a staging folder and rename it into place at the
+    end, so that a failure or Ctrl-C leaves nothing (and an existing folder, replaced only
+    with ``overwrite``, stays as it was until the new one is complete)::
+
+        with staged_output(out, overwrite, marker="run.yaml", what="a run") as stage:
+            write_files(stage)
+
+    `check_out` (``marker``, ``what``, ``error``) runs first, before any work.
+    """
+    check_out(out, overwrite, marker=marker, what=what, error=error)
+    stage = make_stage(out, error)
+    try:
+        yield stage
+        replace_dir(stage, out, overwrite=True)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
 
 
 # ----------------------------------------------------------------------------------------------

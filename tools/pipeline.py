@@ -17,18 +17,23 @@ replaced only with ``overwrite``, stays as it was):
   time): with run.rrd the only output that varies run to run.
 - ``config.yaml``: the resolved configuration; ``run.yaml``: provenance (sequence, estimator).
 - ``run.rrd``: the Rerun recording (tools.recording).
+
+No exception inside a frame ends a run: a stage that raises (frontend, an estimator's
+``add()``, the recording) becomes that frame's failure note ``"<stage>: internal error:
+<type>: <message>"`` and the estimators predict through the frame. Bad frames (unusable
+images, internal errors) are named on the console as they happen and counted by reason in
+`RunResult.bad_frames` and run.yaml (tools.badframes).
 """
 
 from __future__ import annotations
 
 import logging
-import shutil
 import sys
 import time
-import uuid
 import zipfile
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
 from importlib import metadata
 from pathlib import Path
 from typing import Any, Literal
@@ -38,13 +43,14 @@ import pandas as pd
 import yaml
 
 from satpose.backend import BackendConfig, BackendError, Estimate, StepReport, make_estimator
-from satpose.datasets.config import to_plain
+from satpose.datasets.config import to_plain, yaml_problem
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3
-from satpose.datasets.sequence import Sequence, load_sequence, replace_dir
-from satpose.frontend.measurements import FrameMeasurements
+from satpose.datasets.sequence import Sequence, load_sequence
+from satpose.frontend.measurements import FrameMeasurements, exception_failure
 from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
-from satpose.tools.files import atomic_write, write_measurements, write_tum
+from satpose.tools.badframes import BadFrames, guarded
+from satpose.tools.files import atomic_write, staged_output, write_measurements, write_tum
 from satpose.tools.recording import RecordingConfig, RunRecorder
 
 log = logging.getLogger(__name__)
@@ -111,13 +117,14 @@ class PipelineConfig:
 
 @dataclass(frozen=True)
 class RunResult:
-    """What a run produced (also on disk)."""
+    """What a run produced (also on disk); ``bad_frames``: the frames named as bad."""
 
     out: Path
     estimator: str
     estimate: Estimate
     measurements: list[FrameMeasurements]
     others: dict[str, Estimate]
+    bad_frames: BadFrames = field(default_factory=BadFrames)
 
 
 def _version() -> str:
@@ -209,29 +216,24 @@ def read_estimate_npz(path: Path) -> Estimate:
         raise RunError(f"{path}: not a readable estimate ({exc})") from None
 
 
-def _check_out(out: Path, overwrite: bool) -> None:
-    """Refuse an output folder we must not replace (before any work is done)."""
-    if not out.exists():
-        return
-    if not out.is_dir():
-        raise RunError(f"{out}: exists and is not a folder")
-    if not any(out.iterdir()):
-        return
-    if not (out / "run.yaml").is_file():
-        raise RunError(f"{out}: folder is not empty and not a run folder (no run.yaml)")
-    if not overwrite:
-        raise RunError(f"{out}: a run folder already exists (choose another folder or --overwrite)")
+def read_provenance(run: Path) -> dict[str, Any]:
+    """The run folder's run.yaml as a mapping (empty if there is none).
 
-
-def _make_stage(out: Path) -> Path:
-    """An empty folder next to ``out`` to build the run in."""
-    stage = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    Raises:
+        RunError: run.yaml is not valid YAML (naming line and column) or not a mapping.
+    """
+    path = Path(run) / "run.yaml"
+    if not path.is_file():
+        return {}
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        stage.mkdir()
-    except OSError as exc:
-        raise RunError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
-    return stage
+        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except yaml.YAMLError as exc:
+        raise RunError(f"{path}: not valid YAML: {yaml_problem(exc)}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RunError(f"{path}: cannot read ({exc})") from None
+    if not isinstance(data, dict):
+        raise RunError(f"{path}: must hold a YAML mapping at the top level")
+    return data
 
 
 def run_pipeline(
@@ -260,21 +262,9 @@ def run_pipeline(
             f"{sequence_path}: the stereo pipeline needs a stereo sequence (this one is {seq.kind})"
         )
     out = Path(out)
-    _check_out(out, overwrite)
-    stage = _make_stage(out)
-    try:
+    with staged_output(out, overwrite, marker="run.yaml", what="a run", error=RunError) as stage:
         result = _run(seq, Path(sequence_path), estimator, stage, cfg, spawn, progress)
-        replace_dir(stage, out, overwrite=True)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
-    return RunResult(
-        out=out,
-        estimator=estimator,
-        estimate=result.estimate,
-        measurements=result.measurements,
-        others=result.others,
-    )
+    return replace(result, out=out)
 
 
 def _run(
@@ -302,10 +292,13 @@ def _run(
     recorder = RunRecorder(out / "run.rrd", seq.calibration, seq.target, cfg.recording, spawn=spawn)
     results: list[FrameMeasurements] = []
     timing_rows: list[dict[str, Any]] = []
+    bad = BadFrames(seq.root)
     try:
         for k, frame in enumerate(seq):
             t0 = time.perf_counter()
-            m = frontend.process_frame(frame)
+            m, why = guarded("frontend", frame.index, partial(frontend.process_frame, frame))
+            if m is None:
+                m = FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(str(why),))
             t1 = time.perf_counter()
             row: dict[str, Any] = {
                 "frame": frame.index,
@@ -314,36 +307,61 @@ def _run(
                 "frontend_total": (t1 - t0) * 1000.0,
             }
             steps.clear()
+            notes: list[str] = []
             for name, est in estimators.items():
                 t2 = time.perf_counter()
-                est.add(m)
+                _, why = guarded(f"backend_{name}", frame.index, partial(est.add, m))
+                notes += [why] if why else []
                 row[f"backend_{name}"] = (time.perf_counter() - t2) * 1000.0
             row.update(steps)
             timing_rows.append(row)
+            _, why = guarded(
+                "recording",
+                frame.index,
+                partial(_record, recorder, seq, k, frame, m, estimators, row),
+            )
+            notes += [why] if why else []
+            if notes:
+                m = replace(m, failures=(*m.failures, *notes))
             results.append(m)
-            _record(recorder, seq, k, frame, m, estimators, row)
+            bad.note(frame.index, m.failures, (frame.left_path, frame.right_path))
             if progress is not None:
                 progress(k + 1, len(seq))
         finals = {}
         for name, est in estimators.items():
             try:
                 finals[name] = est.estimate()
-            except BackendError as exc:
+            except Exception as exc:
+                text = str(exc) if isinstance(exc, BackendError) else exception_failure(name, exc)
+                if not isinstance(exc, BackendError):
+                    log.debug("%s estimator: estimate() raised", name, exc_info=True)
                 if name == estimator:
-                    raise RunError(f"{sequence_path}: no estimate: {exc}") from None
-                log.warning("%s estimator: %s", name, exc)
+                    why = f" ({bad.summary(len(seq))})" if bad.count else ""
+                    raise RunError(f"{sequence_path}: no estimate: {text}{why}") from None
+                log.warning("%s estimator: %s", name, text)
         main = finals[estimator]
-        causal = estimators[estimator].filtered() if estimator != "offline" else main
+        causal = main
+        if estimator != "offline":
+            causal, why = guarded(f"backend_{estimator}", -1, estimators[estimator].filtered)
+            if causal is None:
+                raise RunError(f"{sequence_path}: no filtered estimate: {why}")
         for name, label in (("offline", "smoothed"), ("online", "isam2_smoothed")):
             if name in finals:
                 e = finals[name]
-                recorder.log_final(
-                    label,
-                    list(e.frame),
-                    list(e.left_cam_from_target),
-                    [_truth_pose(seq, int(i)) for i in e.frame],
-                    list(e.spin_rate_deg_per_frame(1.0 / seq.rate_hz)),
+                _, why = guarded(
+                    "recording",
+                    -1,
+                    partial(
+                        recorder.log_final,
+                        label,
+                        list(e.frame),
+                        list(e.left_cam_from_target),
+                        [_truth_pose(seq, int(i)) for i in e.frame],
+                        list(e.spin_rate_deg_per_frame(1.0 / seq.rate_hz)),
+                    ),
                 )
+                if why:
+                    log.warning("run.rrd: the %s trajectory is missing: %s", label, why)
     finally:
         recorder.close()
     write_estimate(causal, out, "trajectory")
@@ -375,6 +393,8 @@ def _run(
         "estimator": estimator,
         "frames": len(seq),
         "frames_with_pose": len(with_pose),
+        "bad_frames": bad.count,
+        "bad_frames_by_reason": bad.as_dict(),
         "command": " ".join(sys.argv),
     }
     atomic_write(
@@ -382,7 +402,12 @@ def _run(
     )
     others = {n: e for n, e in finals.items() if n != estimator}
     return RunResult(
-        out=out, estimator=estimator, estimate=causal, measurements=results, others=others
+        out=out,
+        estimator=estimator,
+        estimate=causal,
+        measurements=results,
+        others=others,
+        bad_frames=bad,
     )
 
 

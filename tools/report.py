@@ -22,14 +22,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-import yaml
 
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec
 from satpose.datasets.sequence import Sequence, load_sequence
 from satpose.tools.files import atomic_write, read_tum
 from satpose.tools.metrics import body_rotation_offset, pose_errors
-from satpose.tools.pipeline import read_estimate_npz
+from satpose.tools.pipeline import read_estimate_npz, read_provenance
 
 
 class ReportError(SatposeError):
@@ -48,12 +47,9 @@ def _save(fig: plt.Figure, path: Path) -> Path:
 def _sequence(run: Path, sequence: Path | None) -> Sequence | None:
     if sequence is not None:
         return load_sequence(sequence)
-    prov_path = run / "run.yaml"
-    if prov_path.is_file():
-        prov = yaml.safe_load(prov_path.read_text()) or {}
-        p = prov.get("sequence")
-        if p and Path(p).is_dir():
-            return load_sequence(p)
+    p = read_provenance(run).get("sequence")
+    if p and Path(p).is_dir():
+        return load_sequence(p)
     return None
 
 
@@ -77,11 +73,7 @@ def make_report(run: Path, sequence: Path | None = None) -> list[Path]:
     per_frame = None
     if (run / "frontend_pose.tum").is_file():
         per_frame = read_tum(run / "frontend_pose.tum")
-    estimator = (
-        yaml.safe_load((run / "run.yaml").read_text()).get("estimator", "run")
-        if (run / "run.yaml").is_file()
-        else "run"
-    )
+    estimator = read_provenance(run).get("estimator", "run")
     label = "online (filtered)" if estimator == "online" else estimator
     out = [
         _range_plot(run, est, label, others, per_frame, truth, seq),

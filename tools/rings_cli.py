@@ -35,9 +35,8 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import logging
 import math
-import shutil
-import uuid
 from pathlib import Path
 from typing import Any
 
@@ -46,11 +45,16 @@ import numpy as np
 
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec
-from satpose.datasets.sequence import load_sequence, replace_dir
+from satpose.datasets.sequence import load_sequence
 from satpose.datasets.servicer_rings import RingsTargetInfo, from_yaml
 from satpose.frontend.conics import ConicError, Ellipse, circle_to_conic, conic_to_ellipse
+from satpose.frontend.measurements import exception_failure
 from satpose.frontend.preprocess import Undistorter
 from satpose.frontend.rings import RingsDetection, RingsDetectorConfig, detect_rings, rings_roi
+from satpose.tools.badframes import BadFrames
+from satpose.tools.files import check_out, staged_output
+
+log = logging.getLogger(__name__)
 
 COLUMNS = (
     "frame t_s status reason n_edges cx_m cy_m cz_m nx ny nz center_spread_mm "
@@ -204,8 +208,7 @@ def run_rings(
     """Run the rings check on a sequence (left camera); see the module docstring for the
     files. Returns the summary (also written to DIR/summary.json)."""
     seq = load_sequence(sequence_path)
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise RingsRunError(f"{out}: folder exists and is not empty (use --overwrite)")
+    check_out(out, overwrite, error=RingsRunError)
     target_path = seq.root / "target.yaml"
     raw = seq.target.extras.get("servicer_rings") if seq.target is not None else None
     if raw is not None:
@@ -230,43 +233,64 @@ def run_rings(
     if info.nominal is not None:
         roi = rings_roi(K, info.nominal, float(info.edge_radii_m[-1]), (cam.height, cam.width), cfg)
     prior = info.nominal.R[:, 2] if info.nominal is not None else None
-    stage = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
-    (stage / "overlay").mkdir(parents=True)
-    try:
+    bad = BadFrames(seq.root)
+    with staged_output(out, overwrite, error=RingsRunError) as stage:
+        (stage / "overlay").mkdir()
         rows: list[list[Any]] = []
-        centres, normals, sig_c, sig_n = [], [], [], []
+        centres: list[np.ndarray] = []
+        normals: list[np.ndarray] = []
+        sig_c: list[float] = []
+        sig_n: list[float] = []
         for k, fr in enumerate(seq.frames):
-            prep = und(fr.left())
-            det = detect_rings(prep, K, info.edge_radii_m, cfg, roi, prior)
-            p = det.pose
-            if p.center_m is not None and p.normal is not None:
-                centres.append(p.center_m)
-                normals.append(p.normal)
-                sig_c.append(det.sigma_center_m)
-                sig_n.append(det.sigma_normal_deg)
-                pose_cols = [*p.center_m.tolist(), *p.normal.tolist()]
+            n0 = (len(rows), len(centres))
+            why: str | None = None
+            try:
+                image = fr.left()
+            except SatposeError as exc:
+                why = f"image: {exc}"
             else:
-                pose_cols = [math.nan] * 6
-            rows.append(
-                [
-                    fr.index,
-                    fr.t_s,
-                    "ok" if p.center_m is not None else "no_pose",
-                    p.reason,
-                    len(det.ellipses),
-                    *pose_cols,
-                    p.center_spread_m * 1e3,
-                    p.normal_spread_deg,
-                    p.ambiguity,
-                    det.sigma_center_m * 1e3,
-                    det.sigma_normal_deg,
-                    *_errors(det, info.nominal),
-                    *_errors(det, info.truth),
-                ]
-            )
-            if overlay_every > 0 and k % overlay_every == 0:
-                img = draw_overlay(prep.gray8, det, K, info)
-                cv2.imwrite(str(stage / "overlay" / f"{fr.index:06d}.png"), img)
+                try:
+                    prep = und(image)
+                    det = detect_rings(prep, K, info.edge_radii_m, cfg, roi, prior)
+                    p = det.pose
+                    if p.center_m is not None and p.normal is not None:
+                        centres.append(p.center_m)
+                        normals.append(p.normal)
+                        sig_c.append(det.sigma_center_m)
+                        sig_n.append(det.sigma_normal_deg)
+                        pose_cols = [*p.center_m.tolist(), *p.normal.tolist()]
+                    else:
+                        pose_cols = [math.nan] * 6
+                    rows.append(
+                        [
+                            fr.index,
+                            fr.t_s,
+                            "ok" if p.center_m is not None else "no_pose",
+                            p.reason,
+                            len(det.ellipses),
+                            *pose_cols,
+                            p.center_spread_m * 1e3,
+                            p.normal_spread_deg,
+                            p.ambiguity,
+                            det.sigma_center_m * 1e3,
+                            det.sigma_normal_deg,
+                            *_errors(det, info.nominal),
+                            *_errors(det, info.truth),
+                        ]
+                    )
+                    if overlay_every > 0 and k % overlay_every == 0:
+                        img = draw_overlay(prep.gray8, det, K, info)
+                        cv2.imwrite(str(stage / "overlay" / f"{fr.index:06d}.png"), img)
+                except Exception as exc:
+                    log.debug("frame %d: rings raised", fr.index, exc_info=True)
+                    why = exception_failure("rings", exc)
+            if why is not None:
+                # a frame without a pose: drop what a failed step had added
+                del rows[n0[0] :]
+                for lst in (centres, normals, sig_c, sig_n):
+                    del lst[n0[1] :]
+                rows.append([fr.index, fr.t_s, "error", why, 0, *[math.nan] * 15])
+            bad.note(fr.index, (rows[-1][3],) if rows[-1][3] else (), (fr.left_path,))
         with open(stage / "rings.csv", "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(COLUMNS)
@@ -288,14 +312,9 @@ def run_rings(
             e = np.array([r[-2:] for r in rows if r[2] == "ok"], dtype=float)
             summary["truth_center_err_median_mm"] = float(np.median(e[:, 0]))
             summary["truth_normal_err_median_deg"] = float(np.median(e[:, 1]))
+        if bad.count:
+            summary["bad_frames"] = bad.summary(len(seq.frames))
         (stage / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if out.exists() and not any(out.iterdir()):
-            out.rmdir()
-        replace_dir(stage, out, overwrite=True)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
     return summary
 
 

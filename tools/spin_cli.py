@@ -13,6 +13,10 @@ rate series and writes into DIR (each file atomically):
   window, and the rate with its 1-sigma bars (and the truth when groundtruth.csv has it).
 - ``measurements.parquet`` (the frontend -> backend contract, `tools.files`) and
   ``config.yaml`` (the resolved config).
+
+DIR is built in a staging folder and renamed at the end; an existing spin folder is replaced
+only with ``--overwrite``. A frame that cannot be measured (unreadable image, an exception)
+is a frame without an angle; bad frames are named as warnings and counted at the end.
 """
 
 from __future__ import annotations
@@ -57,11 +61,16 @@ def register(subparsers: Any) -> None:
         help="YAML/TOML spin config (region, rate, preprocess; unknown keys are refused), "
         "e.g. rate: {window_frames: 30, model: projection}",
     )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing spin output folder (once the new one is complete)",
+    )
     p.set_defaults(handler=cmd_spin)
 
 
 def cmd_spin(args: argparse.Namespace) -> None:
-    run_spin_on(args.sequence, args.out, args.config)
+    run_spin_on(args.sequence, args.out, args.config, overwrite=args.overwrite)
 
 
 @dataclass(frozen=True)
@@ -73,15 +82,21 @@ class SpinRun:
     files: list[Path]
 
 
-def run_spin_on(sequence_path: Path, out: Path, config_path: Path | None) -> SpinRun:
+def run_spin_on(
+    sequence_path: Path, out: Path, config_path: Path | None, overwrite: bool = False
+) -> SpinRun:
     """The spin frontend over a whole sequence, with a progress bar; prints the rate series
     and writes the result files (see the module docstring)."""
+    from functools import partial
+
     from tqdm import tqdm
 
     from satpose.datasets.config import load_config, to_plain
     from satpose.datasets.sequence import load_sequence
+    from satpose.frontend.measurements import FrameMeasurements
     from satpose.frontend.spin import SpinConfig, SpinFrontend
-    from satpose.tools.files import atomic_write, prepare_out, write_measurements
+    from satpose.tools.badframes import BadFrames, guarded
+    from satpose.tools.files import atomic_write, staged_output, write_measurements
 
     seq = load_sequence(sequence_path)
     config = load_config(SpinConfig, config_path) if config_path else SpinConfig()
@@ -92,11 +107,11 @@ def run_spin_on(sequence_path: Path, out: Path, config_path: Path | None) -> Spi
             "frame",
             f"{len(seq)} frames, but the spin buffer needs {n} (rate.window_frames)",
         )
-    prepare_out(out)
     steps: list[SpinStep] = []
     frontend = SpinFrontend(seq.calibration.left, config, hook=steps.append)
-    results = [
-        frontend.process_frame(frame)
+    bad = BadFrames(seq.root)
+    results: list[FrameMeasurements] = []
+    with staged_output(out, overwrite, marker="spin.csv", what="a spin") as stage:
         for frame in tqdm(
             seq,
             desc=f"spin {seq.name}",
@@ -104,23 +119,27 @@ def run_spin_on(sequence_path: Path, out: Path, config_path: Path | None) -> Spi
             file=sys.stderr,
             dynamic_ncols=True,
             delay=0.5,
-        )
-    ]
-    files = [
-        atomic_write(out / "spin.csv", lambda tmp: Path(tmp).write_text(spin_csv(steps))),
-        atomic_write(out / "spin_angles.csv", lambda tmp: Path(tmp).write_text(angles_csv(steps))),
-        write_measurements(results, out / "measurements.parquet"),
+        ):
+            m, why = guarded("spin", frame.index, partial(frontend.process_frame, frame))
+            if m is None:
+                m = FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(str(why),))
+            bad.note(frame.index, m.failures, (frame.left_path,))
+            results.append(m)
+        names = ["spin.csv", "spin_angles.csv", "measurements.parquet", "config.yaml", "spin.png"]
+        atomic_write(stage / "spin.csv", lambda tmp: Path(tmp).write_text(spin_csv(steps)))
+        atomic_write(stage / "spin_angles.csv", lambda tmp: Path(tmp).write_text(angles_csv(steps)))
+        write_measurements(results, stage / "measurements.parquet")
         atomic_write(
-            out / "config.yaml",
+            stage / "config.yaml",
             lambda tmp: Path(tmp).write_text(
                 yaml.safe_dump({"spin": to_plain(config)}, sort_keys=False)
             ),
-        ),
-    ]
-    truth = None
-    if seq.truth is not None and seq.truth.angular_velocity is not None:
-        truth = (seq.truth.t_s, np.degrees(np.linalg.norm(seq.truth.angular_velocity, axis=1)))
-    files.append(atomic_write(out / "spin.png", lambda tmp: plot_spin(steps, tmp, seq.name, truth)))
+        )
+        truth = None
+        if seq.truth is not None and seq.truth.angular_velocity is not None:
+            truth = (seq.truth.t_s, np.degrees(np.linalg.norm(seq.truth.angular_velocity, axis=1)))
+        atomic_write(stage / "spin.png", lambda tmp: plot_spin(steps, tmp, seq.name, truth))
+    files = [out / name for name in names]
     if config.rate.max_rate_deg_s is None:
         print(
             f"rates fold at 90 deg per frame ({90.0 * seq.rate_hz:g} deg/s at "
@@ -135,6 +154,8 @@ def run_spin_on(sequence_path: Path, out: Path, config_path: Path | None) -> Spi
         rates = np.degrees([f.rate_rad_s for f in ok])
         summary += f": mean {rates.mean():.3f} deg/s, std {rates.std():.3f} deg/s"
     print(f"{summary}; wrote {', '.join(str(f) for f in files)}")
+    if bad.count:
+        print(bad.summary(len(results)))
     return SpinRun(steps, results, files)
 
 

@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import argparse
 import math
-import shutil
-import uuid
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -22,9 +20,9 @@ import pandas as pd
 import yaml
 
 from satpose.datasets.config import to_plain
-from satpose.datasets.errors import SequenceError
+from satpose.datasets.errors import SatposeError, SequenceError
 from satpose.datasets.geometry import matrix_to_quat_xyzw, matrix_to_rotvec
-from satpose.datasets.sequence import load_sequence, replace_dir
+from satpose.datasets.sequence import load_sequence
 from satpose.frontend.stars import (
     ARCSEC,
     AttitudeSolution,
@@ -34,8 +32,14 @@ from satpose.frontend.stars import (
     relative_rotation_bearings,
     run_event_tracker,
 )
+from satpose.tools.badframes import BadFrames, guarded
+from satpose.tools.files import staged_output
 
 Pipeline = Literal["events", "frames"]
+
+
+class StarsRunError(SatposeError):
+    """`satpose stars track` cannot run with these inputs."""
 
 
 @dataclass(frozen=True)
@@ -47,6 +51,7 @@ class TrackResult:
     R: np.ndarray  # smoothed (N, 3, 3); NaN rows before the first absolute attitude
     cov: np.ndarray
     estimator: str
+    bad_frames: BadFrames = field(default_factory=BadFrames)  # frames pipeline only
 
 
 def windows_from_solutions(sols: list[AttitudeSolution], sigma_rad: float) -> list[Any]:
@@ -114,12 +119,30 @@ def track_sequence(
             raise SequenceError(seq_dir / EVENTS_FILE, "events", "no events")
         t1 = ev.t_s[-1] if duration_s is None else min(duration_s, ev.t_s[-1])
         sols = run_event_tracker(tracker, ev, 0.0, float(t1))
-    else:
+    bad = BadFrames(seq.root)
+    if pipeline != "events":
         sols = []
         for fr in seq.frames:
             if duration_s is not None and fr.t_s > duration_s:
                 break
-            sols.append(tracker.track_spots(frame_spots(fr.image("left"), fr.t_s), fr.t_s))
+            try:
+                image = fr.image("left")
+            except SatposeError as exc:
+                why: str | None = f"image: {exc}"
+                sol = None
+            else:
+                sol, why = guarded(
+                    "stars",
+                    fr.index,
+                    lambda image=image, t_s=fr.t_s: tracker.track_spots(
+                        frame_spots(image, t_s), t_s
+                    ),
+                )
+            if sol is None:  # a frame without an attitude: the tracker predicts through it
+                sol = AttitudeSolution(fr.t_s, None, None, "lost")
+            if why is not None:
+                bad.note(fr.index, (why,), (fr.left_path,))
+            sols.append(sol)
     windows = windows_from_solutions(sols, tracker.sigma_rad)
     # Relative factors off: between two windows that both have absolute priors they reuse
     # the priors' bearings (double counting; docs/stars.md measures both).
@@ -144,7 +167,7 @@ def track_sequence(
                     R[k], cov[k] = s.R, s.cov
         else:
             raise SequenceError(seq_dir, "estimator", f"unknown estimator {estimator!r}")
-    return TrackResult(sols, np.array([s.t_s for s in sols]), R, cov, estimator)
+    return TrackResult(sols, np.array([s.t_s for s in sols]), R, cov, estimator, bad)
 
 
 def attitude_errors_arcsec(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
@@ -313,13 +336,8 @@ def _cmd_render(args: argparse.Namespace) -> None:
 
 def _cmd_track(args: argparse.Namespace) -> None:
     out: Path = args.out
-    if out.exists() and not args.overwrite:
-        raise SequenceError(out, None, "output folder already exists (use --overwrite)")
-    res = track_sequence(args.sequence, args.pipeline, args.estimator)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
-    try:
+    with staged_output(out, args.overwrite, error=StarsRunError) as tmp:
+        res = track_sequence(args.sequence, args.pipeline, args.estimator)
         meta = {
             "sequence": str(args.sequence),
             "pipeline": args.pipeline,
@@ -329,12 +347,10 @@ def _cmd_track(args: argparse.Namespace) -> None:
         _write_outputs(res, tmp, args.sequence, meta)
         if args.rerun:
             write_recording(res, args.sequence, tmp / "stars.rrd")
-        replace_dir(tmp, out, args.overwrite)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     n_ok = int(np.isfinite(res.R[:, 0, 0]).sum())
     print(f"{n_ok}/{len(res.t_s)} windows with an attitude; wrote {out}")
+    if res.bad_frames.count:
+        print(res.bad_frames.summary(len(res.t_s)))
 
 
 def register(subparsers: Any) -> None:

@@ -150,7 +150,9 @@ def test_non_increasing_time(synthetic_sequence: Path) -> None:
         df.loc[2, "t_s"] = df.loc[1, "t_s"]
 
     _edit_csv(synthetic_sequence / "frames.csv", swap)
-    _expect(synthetic_sequence, "frames.csv", "t_s", "strictly greater")
+    err = _expect(synthetic_sequence, "frames.csv", "t_s", "strictly greater")
+    # plain numbers, not numpy reprs (np.float64(0.5))
+    assert str(err).endswith("row 3: 0.5 is not strictly greater than the previous row's 0.5")
 
 
 def test_non_increasing_frame_index(synthetic_sequence: Path) -> None:
@@ -231,6 +233,17 @@ def test_truth_frames_must_match(synthetic_sequence: Path) -> None:
 def test_corrupt_yaml(synthetic_sequence: Path) -> None:
     (synthetic_sequence / "calib.yaml").write_text("cameras: [unclosed\n")
     _expect(synthetic_sequence, "calib.yaml", None, "not valid YAML")
+
+
+def test_truncated_yaml_names_the_line(synthetic_sequence: Path) -> None:
+    path = synthetic_sequence / "calib.yaml"
+    lines = path.read_text().splitlines(keepends=True)
+    cut = next(i for i, line in enumerate(lines) if "K: [" in line)
+    # cut inside the first K list: the parser runs into the end of the file
+    path.write_text("".join(lines[:cut]) + lines[cut][: lines[cut].index("[") + 4])
+    err = _expect(synthetic_sequence, "calib.yaml", None, "not valid YAML")
+    assert f"line {cut + 1}, column " in str(err)
+    assert "<stream end>" in str(err)
 
 
 def test_mono_sequence_has_no_right_column(tmp_path: Path) -> None:

@@ -126,6 +126,38 @@ def test_unreadable_image_is_a_failure_not_an_exception(
     assert results[3].pose is not None
 
 
+def test_an_exception_inside_a_stage_ends_only_that_frame(
+    docking_small: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A bug in one stage (here: the panel stage raising) is that frame's failure, naming
+    the stage and the exception; the next frame is measured normally."""
+    seq = load_sequence(docking_small)
+    fe = StereoFrontend(seq.calibration)
+    assert fe.process_frame(seq[0]).pose is not None
+    real = fe._panel
+
+    def broken(*args: object, **kwargs: object) -> object:
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(fe, "_panel", broken)
+    bad = fe.process_frame(seq[1])
+    assert bad.pose is None and bad.ring is None
+    assert bad.failures == ("panel: internal error: RuntimeError: boom",)
+    monkeypatch.setattr(fe, "_panel", real)
+    again = fe.process_frame(seq[2])
+    assert again.ring is not None and again.pose is not None, again.failures
+
+
+def test_nan_pixels_are_named(docking_small: Path) -> None:
+    seq = load_sequence(docking_small)
+    fe = StereoFrontend(seq.calibration)
+    left = seq[0].left().astype(np.float32) / 255.0
+    left[10:20, 10:20] = np.nan
+    m = fe.process(0, 0.0, left, seq[0].right())
+    assert m.pose is None
+    assert any(f.startswith("image (left): non-finite pixel values") for f in m.failures)
+
+
 def test_frontend_cli_writes_its_files(docking_small: Path, tmp_path: Path) -> None:
     from satpose.tools.cli import main
 

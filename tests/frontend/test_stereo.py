@@ -17,6 +17,7 @@ from satpose.frontend.conics import (
     sampson_distance,
 )
 from satpose.frontend.stereo import (
+    GeometryFailure,
     StereoRig,
     circle_from_stereo_conics,
     cone_circle_candidates,
@@ -134,3 +135,57 @@ def test_pose_eq9_recovers_truth(setup) -> None:  # type: ignore[no-untyped-def]
     assert rotation_angle(T.R.T @ P.R) < 1e-9
     np.testing.assert_allclose(T.t, P.t)
     assert isinstance(T, Rigid3)
+
+
+@pytest.mark.parametrize("bad", [1e6, -1e6, np.nan, np.inf])
+def test_refine_circle_survives_a_diverging_step(setup, monkeypatch, bad: float) -> None:  # type: ignore[no-untyped-def]
+    """A Gauss-Newton step that explodes (the OverflowError of `r0 * exp(x[5])` seen on a
+    tumbling render) is bounded or refused: a finite circle or a GeometryFailure, never an
+    OverflowError."""
+    rig, poses, _ = setup
+    P = poses[10]
+    el = conic_to_ellipse(circle_to_conic(rig.K_left, P, 0.3))
+    er = conic_to_ellipse(circle_to_conic(rig.K_right, rig.right_from_left @ P, 0.3))
+    rng = np.random.default_rng(5)
+    pl = el.points(80) + rng.normal(0, 0.4, (80, 2))
+    pr = er.points(80) + rng.normal(0, 0.4, (80, 2))
+
+    def diverging(J: np.ndarray, b: np.ndarray, rcond: object = None) -> tuple[np.ndarray, ...]:
+        return (np.full(J.shape[1], bad), np.zeros(0), J.shape[1], np.ones(J.shape[1]))
+
+    monkeypatch.setattr(np.linalg, "lstsq", diverging)
+    if not np.isfinite(bad):
+        with pytest.raises(GeometryFailure, match="diverged"):
+            refine_circle(rig, P.t, P.R[:, 2], 0.3, pl, pr, iterations=6)
+        return
+    try:
+        circ = refine_circle(rig, P.t, P.R[:, 2], 0.3, pl, pr, iterations=6)
+    except GeometryFailure as exc:
+        assert "diverged" in str(exc)  # e.g. the centre pushed behind the camera
+        return
+    assert np.all(np.isfinite(circ.center)) and np.isfinite(circ.radius)
+    assert np.all(np.isfinite(circ.covariance))
+    # 6 steps of at most 0.3 in log(radius): the radius cannot run off to overflow
+    assert np.exp(-6 * 0.3) * 0.3 <= circ.radius <= np.exp(6 * 0.3) * 0.3 + 1e-12
+
+
+@pytest.mark.parametrize("bad", [1e9, np.nan])
+def test_refine_ellipse_survives_a_diverging_step(monkeypatch, bad: float) -> None:  # type: ignore[no-untyped-def]
+    """A diverging geometric ellipse fit ends in a ConicError or a finite ellipse whose
+    axes moved at most one major axis per step, never an exception from the arithmetic."""
+    from satpose.frontend.conics import ConicError
+
+    e = Ellipse(cx=100.3, cy=80.7, a=50.0, b=30.0, theta=0.4)
+    pts = e.points(60) + np.random.default_rng(6).normal(0, 0.3, (60, 2))
+
+    def diverging(J: np.ndarray, b: np.ndarray, rcond: object = None) -> tuple[np.ndarray, ...]:
+        return (np.full(J.shape[1], bad), np.zeros(0), J.shape[1], np.ones(J.shape[1]))
+
+    monkeypatch.setattr(np.linalg, "lstsq", diverging)
+    try:
+        f, cov, _ = refine_ellipse(pts, e, iterations=3)
+    except ConicError as exc:
+        assert "diverged" in str(exc) or "singular" in str(exc)
+        return
+    assert np.isfinite(bad)
+    assert np.all(np.isfinite(f.params)) and np.all(np.isfinite(cov)) and f.a <= 50.0 * 2**3

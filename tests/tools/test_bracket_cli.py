@@ -55,3 +55,41 @@ def test_bracket_cli_bad_input(
     # no sequence at all
     assert main(["bracket", str(tmp_path / "nothing"), "--out", str(tmp_path / "o2")]) == 2
     assert capsys.readouterr().err.startswith("satpose bracket: error:")
+
+
+def test_bracket_cli_survives_an_unreadable_frame_and_a_failing_stage(
+    tiny_bracket: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """An unreadable image and an exception inside the detection are frame failures (a
+    reason in points.csv, a warning naming the file), not the end of the run."""
+    import logging
+    import shutil
+
+    from satpose.tools import bracket as bracket_cli
+
+    seq = tmp_path / "seq"
+    shutil.copytree(tiny_bracket, seq)
+    (seq / "left" / "000001.png").write_bytes(b"")
+    with caplog.at_level(logging.WARNING):
+        assert main(["bracket", str(seq), "--out", str(tmp_path / "a"), "--estimator", "none"]) == 0
+    with open(tmp_path / "a" / "points.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert "not a readable PNG" in rows[1]["reason"]
+    assert any("left/000001.png" in r.getMessage() for r in caplog.records)
+
+    def broken(*args: object, **kwargs: object) -> object:
+        raise ValueError("boom")
+
+    monkeypatch.setattr(bracket_cli, "detect_struts", broken)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        # no frame gives a pose: a one-line error, but no traceback and no half-written folder
+        assert main(["bracket", str(tiny_bracket), "--out", str(tmp_path / "b")]) == 2
+    assert (
+        sum("bracket: internal error: ValueError: boom" in r.getMessage() for r in caplog.records)
+        == 2
+    )
+    assert not (tmp_path / "b").exists()

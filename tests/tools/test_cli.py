@@ -106,3 +106,25 @@ def test_output_under_a_file_is_refused(tmp_path: Path, capsys: pytest.CaptureFi
         == 2
     )
     assert "cannot create the output folder" in capsys.readouterr().err
+
+
+def test_config_with_a_yaml_error_names_the_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("target:\n  ring:\n    outer_radius_m: [0.4\n")
+    assert main(["render", "tumble", "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "c.yaml: not valid YAML: line " in err and "column" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_run_with_a_truncated_calibration_names_the_line(
+    synthetic_sequence: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    calib = synthetic_sequence / "calib.yaml"
+    calib.write_text(calib.read_text()[:120])
+    assert main(["run", str(synthetic_sequence), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "calib.yaml: not valid YAML: line " in err, err
+    assert not (tmp_path / "o").exists()

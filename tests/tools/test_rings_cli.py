@@ -125,3 +125,12 @@ def test_rings_cli_bad_input(
     rows = _rows(tmp_path / "d")
     assert rows[0]["status"] == "ok"
     assert rows[1]["status"] == "no_pose" and "dark" in rows[1]["reason"]
+    # a zero-byte frame: an error row with the reason, a warning, the other frames measured
+    empty = tmp_path / "empty"
+    shutil.copytree(tiny, empty)
+    (empty / "left" / "000001.png").write_bytes(b"")
+    assert main(["rings", str(empty), "--out", str(tmp_path / "e")]) == 0
+    rows = _rows(tmp_path / "e")
+    assert rows[0]["status"] == "ok"
+    assert rows[1]["status"] == "error" and "not a readable PNG" in rows[1]["reason"]
+    assert _summary(tmp_path / "e")["bad_frames"] == "1 bad frame (of 2): unreadable image 1"
