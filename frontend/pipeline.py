@@ -215,15 +215,16 @@ class StereoFrontend:
             )
 
     def reset_tracking(self) -> None:
-        """Forget the image tracks (ring, panel, ORB) and the motion history: the next frame
-        acquires afresh. The target-frame map is kept (it is only read through a pose)."""
+        """Forget the image tracks (ring, panel, ORB): the next frame acquires afresh. The
+        target-frame map and the last poses are kept: they were measured before the failure,
+        and the prediction from them is what tells a symmetric panel's half turns apart when
+        the landmarks are re-identified (`TargetFrameTracker.relocalize`)."""
         for ring in self.rings.values():
             ring.reset()
         for panel in self.panels.values():
             panel.reset()
         self.orb.reset()
         self.landmarks.reset()
-        self._history = []
 
     def _process(
         self, index: int, t_s: float, left: np.ndarray, right: np.ndarray, timer: _Timer
