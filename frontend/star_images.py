@@ -140,9 +140,10 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     return img
 
 
-def _block_stats(img: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
+def _block_stats(img: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray, float]:
     """Median and MAD sigma per ``block`` x ``block`` block (every second pixel of each
-    row and column sampled), interpolated to full size (bilinear)."""
+    row and column sampled), interpolated to full size (bilinear), and the median of the
+    blocks' sigmas."""
     h, w = img.shape
     nby, nbx = -(-h // block), -(-w // block)
     pad = cv2.copyMakeBorder(img, 0, nby * block - h, 0, nbx * block - w, cv2.BORDER_REFLECT)
@@ -158,7 +159,7 @@ def _block_stats(img: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
     size = (nbx * block, nby * block)
     bg = cv2.resize(med, size, interpolation=cv2.INTER_LINEAR)[:h, :w]
     sig = cv2.resize(mad, size, interpolation=cv2.INTER_LINEAR)[:h, :w]
-    return np.ascontiguousarray(bg), np.ascontiguousarray(sig)
+    return np.ascontiguousarray(bg), np.ascontiguousarray(sig), float(np.median(mad))
 
 
 def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None) -> ImageStars:
@@ -184,8 +185,7 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
     h, w = img.shape
     sat = img >= sat_level if sat_level is not None else np.zeros(img.shape, bool)
 
-    bg, noise = _block_stats(img, c.block_px)
-    noise_med = float(np.median(noise))
+    bg, noise, noise_med = _block_stats(img, c.block_px)
     noise = np.maximum(noise, max(noise_med * 0.5, 1e-6))
     sig = img - bg
 
@@ -698,7 +698,7 @@ def solve_stars(
         )
         pi, sj = pi[ref.inlier], sj[ref.inlier]
     elapsed = cpu()
-    verdict = _verify(c, stars, prow, pi, sj, ref, cat)
+    verdict = _verify(c, stars, prow, pi, sj, ref.R, ref.camera, cat)
     if verdict:
         return no_solution(f"verification failed: {verdict}", stars, elapsed)
     r = cat.unit[prow[pi]]
@@ -736,7 +736,8 @@ def _verify(
     prow: np.ndarray,
     pi: np.ndarray,
     sj: np.ndarray,
-    ref: Refinement,
+    R: np.ndarray,
+    cam: SkyCamera,
     cat: SolverCatalogue,
 ) -> str:
     """'' if the predicted stars confirm the solution, else why not."""
@@ -748,7 +749,7 @@ def _verify(
     if fa > c.max_false_alarm:
         return f"{m} of {prow.size} predicted stars found, as likely by chance (p = {fa:.1e})"
     r = cat.unit[prow[pi]]
-    res = np.linalg.norm(_residuals(ref.R, ref.camera, r, stars.px[sj]), axis=1)
+    res = np.linalg.norm(_residuals(R, cam, r, stars.px[sj]), axis=1)
     rmse = float(np.sqrt(np.mean(res**2)))
     if rmse > c.max_rmse_px:
         return f"residuals {rmse:.2f} px RMS over {m} stars (max {c.max_rmse_px})"
@@ -756,8 +757,31 @@ def _verify(
         rho = float(spearmanr(stars.flux[sj], -cat.mag[prow[pi]]).statistic)
         if not rho >= c.min_rank_correlation:
             return f"spot brightness does not follow catalogue magnitude (rank corr. {rho:.2f})"
-    fov = ref.camera.fov_deg
+    fov = cam.fov_deg
     lo, hi = c.fov_range_deg
     if not (lo * 0.98 <= fov <= hi * 1.02):
         return f"field of view {fov:.3f} deg outside {lo}-{hi} deg"
     return ""
+
+
+def check_attitude(
+    stars: ImageStars, R: np.ndarray, camera: SkyCamera, config: StarSolveConfig | None = None
+) -> tuple[str, int, int]:
+    """Verification of any attitude: predict the catalogue stars in the image and look for
+    them among the spots (the check `solve_image` applies to its own solutions).
+
+    Args:
+        stars: the image's spots.
+        R: ``inertial_from_camera`` (3, 3) to check.
+        camera: the camera to project with.
+        config: thresholds and catalogue (field-of-view range, epoch).
+
+    Returns:
+        ``(reason, matches, predicted)``: reason '' if the attitude is confirmed.
+    """
+    c = config or StarSolveConfig()
+    scales = database_fov_range(c.fov_range_deg, stars.width, stars.height)
+    cat = solver_catalogue(scales[0], scales[1], c.epoch_yr)
+    prow, ppx = _predict(cat, R, camera, float(np.max(cat.mag)))
+    pi, sj = _match(ppx, stars.px, np.maximum(c.match_radius_px, 3 * stars.sigma_px))
+    return _verify(c, stars, prow, pi, sj, R, camera, cat), int(pi.size), int(prow.size)
