@@ -1,10 +1,11 @@
-"""``satpose stars render|track``: the event-camera star tracker (seed 004, docs/stars.md).
+"""``satpose stars render|track|solve``: the event-camera star tracker (seed 004, docs/stars.md).
 
 ``render PRESET --out DIR`` simulates a star-tracker run into an event sequence folder
 (docs/event_sequence_format.md). ``track DIR --out OUT`` runs the event (default) or frame
 pipeline and the rotation graph and writes OUT/attitude.tum (``inertial_from_camera``, zero
 translation), OUT/windows.csv (per-window status), OUT/attitude_error.png when the sequence
-has truth, and OUT/config.yaml.
+has truth, and OUT/config.yaml. ``solve IMAGE... --out DIR``: lost in space on real star
+images (tools/stars_solve.py).
 """
 
 from __future__ import annotations
@@ -381,6 +382,9 @@ def register(subparsers: Any) -> None:
     t.add_argument("--rerun", action="store_true", help="also write OUT/stars.rrd (Rerun)")
     t.add_argument("--overwrite", action="store_true")
     t.set_defaults(handler=_cmd_track)
+    from satpose.tools.stars_solve import register_solve
+
+    register_solve(sub)
 
 
 __all__ = ["TrackResult", "attitude_errors_arcsec", "register", "track_sequence"]
