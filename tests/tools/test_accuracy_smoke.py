@@ -38,16 +38,18 @@ def test_stereo_run_is_accurate(
 ) -> None:
     """`satpose run` + `satpose eval` on paper-docking (6 frames, 640x480, 8 spp, 4.5 m).
 
-    Measured: per-frame (frontend) 0.20 cm / 0.31 deg, online filtered 0.20 cm / 0.31 deg,
-    offline 0.14 cm / 0.12 deg (mean errors; rotation = ring-normal-and-spin error as eval
-    reports it). Bounds: 0.45 cm / 0.7 deg per frame and online, 0.35 cm / 0.3 deg offline."""
+    Measured (docs/results/accuracy_smoke.md): per-frame (frontend) 0.24-0.35 cm / 0.27-0.32
+    deg, online filtered 0.22-0.32 cm / 0.25-0.30 deg, offline 0.11-0.14 cm / 0.10-0.13 deg
+    (mean errors; rotation = ring-normal-and-spin error as eval reports it) over OpenCV 4.12
+    and 5.0 and AVX-512 and AVX2 renders. Bounds: 0.55 cm / 0.7 deg per frame and online,
+    0.35 cm / 0.3 deg offline."""
     run = tmp_path / "run"
     assert main(["run", str(docking_small), "--out", str(run)]) == 0
     assert main(["eval", str(docking_small), str(run)]) == 0
     metrics = json.loads((run / "metrics.json").read_text())
     bounds = {
-        "per-frame (frontend)": (0.45, 0.7),
-        "online filtered": (0.45, 0.7),
+        "per-frame (frontend)": (0.55, 0.7),
+        "online filtered": (0.55, 0.7),
         "offline": (0.35, 0.3),
     }
     for name, (pos_cm, rot_deg) in bounds.items():
