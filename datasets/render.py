@@ -208,8 +208,11 @@ class StereoRenderer:
         }
         light = self._light_dict(Rigid3.identity()) if parts is None else dark
         # optimize=False: Mitsuba would otherwise merge shapes that share a BSDF.
+        lc = scenario.light
+        # Earthshine: radiance L of a uniform environment gives irradiance pi L.
+        ambient = lc.earthshine * lc.intensity / math.pi if parts is None else 0.0
         self.scene = mi.load_dict(
-            scene_dict(all_shapes, light, scenario.render.max_depth), optimize=False
+            scene_dict(all_shapes, light, scenario.render.max_depth, ambient), optimize=False
         )
         self.params = mi.traverse(self.scene)
         self._id_scene = None

@@ -131,6 +131,11 @@ class LightConfig:
             ``rotation_deg_s * t`` about that axis through the left camera centre (the light
             slowly changing direction during a long observation). 0 = a fixed light.
         rotation_axis: axis of that rotation, left camera frame (normalised on use).
+        earthshine: a weak fill light, as a fraction of the sun's irradiance (sun only; 0 =
+            none). Modelled as a uniform environment (Mitsuba ``constant`` emitter, hidden from
+            camera rays) whose irradiance on a surface open to a full hemisphere is
+            ``earthshine * intensity``: it lights every side alike, not only the side facing
+            the Earth, and is seen in the reflections of polished metal.
     """
 
     kind: Literal["point", "sun"] = "point"
@@ -139,10 +144,15 @@ class LightConfig:
     intensity: float = 50.0
     rotation_deg_s: float = 0.0
     rotation_axis: Vec3 = (0.0, 1.0, 0.0)
+    earthshine: float = 0.0
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.rotation_deg_s):
             raise ConfigError(f"light.rotation_deg_s must be finite, got {self.rotation_deg_s}")
+        if not 0 <= self.earthshine <= 1:
+            raise ConfigError(f"light.earthshine must be in [0, 1], got {self.earthshine}")
+        if self.earthshine > 0 and self.kind != "sun":
+            raise ConfigError("light.earthshine needs light.kind sun")
         axis = np.asarray(self.rotation_axis, float)
         if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
             raise ConfigError(f"light.rotation_axis must be a non-zero 3-vector, got {axis}")
