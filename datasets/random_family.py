@@ -11,9 +11,10 @@ through the same path as the presets and is written to sequence.yaml's
 Every draw is checked geometrically over its ``DEFAULT_FRAMES`` frames before it is
 returned (`rim_in_view`): the whole outer front edge in both images at frame 0, at least
 80 % of it in both images in at least 90 % of the frames, the ring centre 2-10 m away, the
-ring normal at most 75 deg from the line of sight, and (sunlit scenes) the ring's front face
-lit at frame 0. A motion that fails is drawn again from the same generator, so the result
-is still a function of the seed.
+ring normal at most 75 deg from the line of sight, and the ring's front face lit at most
+70 deg off its normal at frame 0. A motion that fails is drawn again from the same
+generator, so the result is still a function of the seed. The exposure is then metered on
+the ring's front plane.
 
 The seeds are split once (docs/renderer.md, "Random family"): `TUNING_SEEDS` may be looked
 at while developing; `VALIDATION_SEEDS` are only scored, never looked at to change a
@@ -81,7 +82,10 @@ EARTHSHINE_RANGE = (0.02, 0.15)  # fraction of the sun's irradiance
 MAX_VIEW_ANGLE_DEG = 75.0  # ring normal vs line of sight, every frame
 MIN_RIM_IN_VIEW = 0.8
 MIN_FRAMES_IN_VIEW = 0.9
-MAX_SUN_INCIDENCE_DEG = 80.0  # sunlit front face at frame 0
+MAX_LIGHT_INCIDENCE_DEG = 70.0  # ring front lit at frame 0 (normal vs direction to the light)
+METERED_LEVEL_LAMP = (0.35, 0.8)  # exposure: a white surface in the ring's front plane reads
+METERED_LEVEL_SUN = (0.5, 1.2)  # this fraction of full scale at frame 0
+MIN_METERED_COS = 0.4
 FILL_LIMIT = 0.65  # ring diameter at most this fraction of the image height (sets a min range)
 
 MotionKind = Literal["approach", "spin", "tumble"]
@@ -136,9 +140,9 @@ def _rgb(v: float) -> tuple[float, float, float]:
     return (v, v, v)
 
 
-def _foil(rng: np.random.Generator) -> FoilConfig:
-    """One MLI foil style: gold, silver, aluminium, amber or black Kapton."""
-    style = int(rng.integers(5))
+def _foil(rng: np.random.Generator, dark: bool = True) -> FoilConfig:
+    """One MLI foil style: gold, silver, aluminium, amber or (if ``dark``) black Kapton."""
+    style = int(rng.integers(5 if dark else 4))
     metal, tint = [
         ("Au", (1.0, 1.0, 1.0)),
         ("Ag", (0.95, 0.95, 0.97)),
@@ -180,6 +184,10 @@ def _ring_material(rng: np.random.Generator) -> MetalConfig:
 
 
 RimStyle = Literal["flat", "rounded", "lip"]
+
+
+def _is_dark(m: MetalConfig) -> bool:
+    return m.finish == "anodised" and max(m.diffuse_rgb) < 0.2
 
 
 def _ring(rng: np.random.Generator) -> RingConfig:
@@ -236,7 +244,8 @@ def _target(rng: np.random.Generator) -> TargetConfig:
         width_m=2 * hw,
         height_m=2 * hh,
         thickness_m=_u(rng, (0.015, 0.04)),
-        foil=_foil(rng),
+        # A dark anodised ring stays visible: no black Kapton behind it.
+        foil=_foil(rng, dark=not _is_dark(ring.material)),
         corner0=int(rng.integers(4)),
         paint=paint,
     )
@@ -285,7 +294,7 @@ def _light(rng: np.random.Generator) -> tuple[LightConfig, SensorConfig]:
             _u(rng, (-0.1, 0.05)),
         )
         return LightConfig(kind="point", position_m=pos), SensorConfig(
-            white_level=_u(rng, (0.35, 0.8))
+            white_level=_u(rng, METERED_LEVEL_LAMP)
         )
     light = LightConfig(
         kind="sun",
@@ -293,7 +302,7 @@ def _light(rng: np.random.Generator) -> tuple[LightConfig, SensorConfig]:
         intensity=1.0,
         earthshine=_u(rng, EARTHSHINE_RANGE) if rng.random() < 0.5 else 0.0,
     )
-    return light, SensorConfig(white_level=_u(rng, (0.5, 1.2)))
+    return light, SensorConfig(white_level=_u(rng, METERED_LEVEL_SUN))
 
 
 def _sun_direction(rng: np.random.Generator) -> tuple[float, float, float]:
@@ -377,14 +386,14 @@ class Validity:
         rim_in_view: (N, C) fraction of the outer front edge inside each image.
         range_m: (N,) distance of the ring centre from the left camera.
         view_angle_deg: (N,) angle between the ring normal and the line of sight to it.
-        sun_incidence_deg: (N,) angle between the ring normal and the direction to the sun
-            (NaN for a lamp).
+        light_incidence_deg: (N,) angle between the ring normal and the direction from the
+            ring centre to the light (the lamp, or the sun).
     """
 
     rim_in_view: np.ndarray
     range_m: np.ndarray
     view_angle_deg: np.ndarray
-    sun_incidence_deg: np.ndarray
+    light_incidence_deg: np.ndarray
 
     def problems(self) -> list[str]:
         """Why the scenario is refused (empty: it is fine)."""
@@ -398,33 +407,44 @@ class Validity:
             out.append("range leaves 2-10 m")
         if np.any(self.view_angle_deg > MAX_VIEW_ANGLE_DEG):
             out.append("ring seen too obliquely")
-        if self.sun_incidence_deg[0] > MAX_SUN_INCIDENCE_DEG:
-            out.append("ring front in shadow at frame 0")
+        if self.light_incidence_deg[0] > MAX_LIGHT_INCIDENCE_DEG:
+            out.append("ring front lit too obliquely at frame 0")
         return out
 
 
 def validity(s: Scenario) -> Validity:
     """The geometric checks of a scenario over its frames (`Validity`)."""
     traj = trajectory(s)
-    ranges, views, suns = [], [], []
-    for pose in traj.left_cam_from_target:
+    ranges, views, lights = [], [], []
+    for k, pose in enumerate(traj.left_cam_from_target):
         n = pose.R[:, 2]  # ring normal in the left camera frame
-        to_cam = -pose.t / np.linalg.norm(pose.t)
         ranges.append(float(np.linalg.norm(pose.t)))
-        views.append(math.degrees(math.acos(float(np.clip(n @ to_cam, -1, 1)))))
-        if s.light.kind == "sun":
-            to_sun = -np.asarray(s.light.direction, float)
-            to_sun /= np.linalg.norm(to_sun)
-            suns.append(math.degrees(math.acos(float(np.clip(n @ to_sun, -1, 1)))))
+        views.append(_angle_deg(n, -pose.t))
+        lc = s.light.at(float(traj.t_s[k]))
+        if lc.kind == "sun":
+            lights.append(_angle_deg(n, -np.asarray(lc.direction, float)))
         else:
-            suns.append(math.nan)
-    sun = np.array(suns)
+            lights.append(_angle_deg(n, np.asarray(lc.position_m, float) - pose.t))
     return Validity(
         rim_in_view=rim_in_view(s, traj),
         range_m=np.array(ranges),
         view_angle_deg=np.array(views),
-        sun_incidence_deg=np.where(np.isnan(sun), 0.0, sun),
+        light_incidence_deg=np.array(lights),
     )
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    c = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
+
+
+def metered(s: Scenario, light_incidence_deg: float) -> Scenario:
+    """Meter the exposure on the ring's front plane: ``sensor.white_level`` (drawn as the
+    level a white Lambertian surface there should read) divided by the cosine of the
+    light's incidence on it at frame 0 (at least ``MIN_METERED_COS``); the sensor's auto
+    exposure refers to a surface facing the light."""
+    cos_i = max(math.cos(math.radians(light_incidence_deg)), MIN_METERED_COS)
+    return replace(s, sensor=replace(s.sensor, white_level=s.sensor.white_level / cos_i))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -481,9 +501,10 @@ def random_draw(seed: int) -> RandomDraw:
         s = replace(base, motion=_motion(rng, base, kind, lo))
         if light.kind == "sun" and attempt > 1:
             s = replace(s, light=replace(light, direction=_sun_direction(rng)))
-        if not validity(s).problems():
+        v = validity(s)
+        if not v.problems():
             return RandomDraw(
-                scenario=s,
+                scenario=metered(s, float(v.light_incidence_deg[0])),
                 motion=kind,
                 rim=rim,
                 light="sun" if light.kind == "sun" else "lamp",

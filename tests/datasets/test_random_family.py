@@ -89,6 +89,12 @@ def test_scene_within_the_ranges(draws: dict[int, rf.RandomDraw]) -> None:
             assert s.light.earthshine == 0 or _within(s.light.earthshine, rf.EARTHSHINE_RANGE)
         else:
             assert s.light.earthshine == 0, seed
+        assert v.light_incidence_deg[0] <= rf.MAX_LIGHT_INCIDENCE_DEG, seed
+        levels = rf.METERED_LEVEL_SUN if s.light.kind == "sun" else rf.METERED_LEVEL_LAMP
+        metered = s.sensor.white_level * max(
+            math.cos(math.radians(v.light_incidence_deg[0])), rf.MIN_METERED_COS
+        )
+        assert _within(metered, levels, 1e-9), seed
         w = np.asarray(s.motion.angular_velocity_deg_s)
         assert (np.linalg.norm(w[:2]) > 0) == (d.motion == "tumble"), seed
 
