@@ -131,6 +131,11 @@ class LightConfig:
             ``rotation_deg_s * t`` about that axis through the left camera centre (the light
             slowly changing direction during a long observation). 0 = a fixed light.
         rotation_axis: axis of that rotation, left camera frame (normalised on use).
+        earthshine: a weak fill light, as a fraction of the sun's irradiance (sun only; 0 =
+            none). Modelled as a uniform environment (Mitsuba ``constant`` emitter, hidden from
+            camera rays) whose irradiance on a surface open to a full hemisphere is
+            ``earthshine * intensity``: it lights every side alike, not only the side facing
+            the Earth, and is seen in the reflections of polished metal.
     """
 
     kind: Literal["point", "sun"] = "point"
@@ -139,10 +144,15 @@ class LightConfig:
     intensity: float = 50.0
     rotation_deg_s: float = 0.0
     rotation_axis: Vec3 = (0.0, 1.0, 0.0)
+    earthshine: float = 0.0
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.rotation_deg_s):
             raise ConfigError(f"light.rotation_deg_s must be finite, got {self.rotation_deg_s}")
+        if not 0 <= self.earthshine <= 1:
+            raise ConfigError(f"light.earthshine must be in [0, 1], got {self.earthshine}")
+        if self.earthshine > 0 and self.kind != "sun":
+            raise ConfigError("light.earthshine needs light.kind sun")
         axis = np.asarray(self.rotation_axis, float)
         if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
             raise ConfigError(f"light.rotation_axis must be a non-zero 3-vector, got {axis}")
@@ -345,6 +355,61 @@ def trajectory(s: Scenario) -> Trajectory:
         angular_velocity=np.array(omegas),
         linear_velocity=np.array(vels),
     )
+
+
+RIM_SAMPLES = 180  # points on the outer front edge (every 2 deg) for `rim_in_view`
+
+
+def _view_limits(camera: PinholeCamera) -> tuple[float, float]:
+    """Largest ``|x|`` and ``|y|`` (normalised, undistorted) of any pixel of the image."""
+    W, H = camera.width, camera.height
+    u = np.linspace(-0.5, W - 0.5, 64)
+    v = np.linspace(-0.5, H - 0.5, 48)
+    border = np.vstack(
+        [
+            np.c_[u, np.full_like(u, -0.5)],
+            np.c_[u, np.full_like(u, H - 0.5)],
+            np.c_[np.full_like(v, -0.5), v],
+            np.c_[np.full_like(v, W - 0.5), v],
+        ]
+    )
+    xy = camera.undistort_points(border)
+    return float(np.max(np.abs(xy[:, 0]))), float(np.max(np.abs(xy[:, 1])))
+
+
+def rim_in_view(s: Scenario, traj: Trajectory | None = None) -> np.ndarray:
+    """Fraction of the ring's outer front edge inside each camera's image, per frame.
+
+    The edge (target.yaml's ring circle, ``RIM_SAMPLES`` points) is projected through the
+    calibration (distortion included) with the true pose; a point counts when it lies in
+    front of the camera and inside the image (pixel centres 0 .. W-1, plus half a pixel).
+    Occlusion is not modelled (nothing of the target stands in front of the rim but bolt
+    heads).
+
+    Returns:
+        (N, C) fractions in [0, 1]; columns left, right (right only for stereo rigs).
+    """
+    traj = trajectory(s) if traj is None else traj
+    calib = s.rig.calibration()
+    a = np.linspace(0, 2 * math.pi, RIM_SAMPLES, endpoint=False)
+    rim = s.target.ring.outer_radius_m * np.c_[np.cos(a), np.sin(a), np.zeros_like(a)]
+    cams: list[tuple[PinholeCamera, Rigid3]] = [(calib.left, Rigid3.identity())]
+    if calib.right is not None and calib.right_from_left is not None:
+        cams.append((calib.right, calib.right_from_left))
+    out = np.zeros((len(traj.left_cam_from_target), len(cams)))
+    for c, (cam, cam_from_left) in enumerate(cams):
+        lim_x, lim_y = _view_limits(cam)
+        for k, pose in enumerate(traj.left_cam_from_target):
+            p = (cam_from_left @ pose).apply(rim)
+            ok = p[:, 2] > 1e-3
+            xy = p[:, :2] / np.where(ok, p[:, 2], 1.0)[:, None]
+            # Outside the undistorted field the polynomial model can fold back into the image.
+            ok &= (np.abs(xy[:, 0]) <= lim_x) & (np.abs(xy[:, 1]) <= lim_y)
+            uv = cam.normalized_to_pixels(xy)
+            ok &= (uv[:, 0] >= -0.5) & (uv[:, 0] <= cam.width - 0.5)
+            ok &= (uv[:, 1] >= -0.5) & (uv[:, 1] <= cam.height - 0.5)
+            out[k, c] = float(np.mean(ok))
+    return out
 
 
 # --------------------------------------------------------------------------------------------

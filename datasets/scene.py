@@ -177,6 +177,25 @@ def _foil_bsdf(
 
 
 def _metal_bsdf(cfg: MetalConfig) -> dict[str, Any]:
+    if cfg.finish == "painted":
+        return {
+            "type": "twosided",
+            "bsdf": {
+                "type": "diffuse",
+                "reflectance": {"type": "rgb", "value": list(cfg.diffuse_rgb)},
+            },
+        }
+    if cfg.finish == "anodised":
+        return {
+            "type": "twosided",
+            "bsdf": {
+                "type": "roughplastic",
+                "distribution": "ggx",
+                "alpha": float(cfg.roughness),
+                "diffuse_reflectance": {"type": "rgb", "value": list(cfg.diffuse_rgb)},
+                "int_ior": 1.5,
+            },
+        }
     return {
         "type": "twosided",
         "bsdf": {
@@ -220,11 +239,80 @@ def _annulus_mesh(
     return triangle_mesh(mi, name, verts, faces, attach)
 
 
+def rounded_rim_profile(
+    r_in: float, r_out: float, fillet: float, arc_points: int = 12
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cross-section of a rounded front rim in the (radius, z) half-plane.
+
+    From the top of the inner wall (r_in, -fillet) a quarter circle to (r_in + fillet, 0),
+    flat to (r_out - fillet, 0) (nothing when the rim is half-round), a quarter circle down to
+    (r_out, -fillet).
+
+    Returns:
+        (P, 2) profile points and (P, 2) unit outward normals, both as (radius, z).
+    """
+    a_in = np.linspace(math.pi, math.pi / 2, arc_points + 1)
+    a_out = np.linspace(math.pi / 2, 0.0, arc_points + 1)
+    c_in, c_out = r_in + fillet, r_out - fillet
+    n = np.vstack([np.c_[np.cos(a_in), np.sin(a_in)], np.c_[np.cos(a_out), np.sin(a_out)]])
+    pts = np.vstack(
+        [
+            np.c_[c_in + fillet * np.cos(a_in), -fillet + fillet * np.sin(a_in)],
+            np.c_[c_out + fillet * np.cos(a_out), -fillet + fillet * np.sin(a_out)],
+        ]
+    )
+    if c_out - c_in < 1e-9:  # half-round: the two arcs meet at the crest
+        keep = np.ones(len(pts), bool)
+        keep[arc_points + 1] = False
+        pts, n = pts[keep], n[keep]
+    return pts, n
+
+
+def _revolved_mesh(
+    mi: ModuleType,
+    name: str,
+    profile: np.ndarray,
+    normals: np.ndarray,
+    placer: _Placer,
+    attach: dict[str, Any],
+    segments: int = 1024,
+) -> Any:
+    """A surface of revolution about the panel-frame z axis (through the ring centre) from a
+    (radius, z) profile with per-vertex normals (smooth shading)."""
+    a = np.linspace(0, 2 * math.pi, segments, endpoint=False)
+    ca, sa = np.cos(a), np.sin(a)
+    P = len(profile)
+    # vertex (k, j): profile point k at angle j -> index k * segments + j
+    verts = np.concatenate([np.c_[r * ca, r * sa, np.full(segments, z)] for r, z in profile])
+    nrm = np.concatenate([np.c_[nr * ca, nr * sa, np.full(segments, nz)] for nr, nz in normals])
+    j = np.arange(segments)
+    j1 = (j + 1) % segments
+    faces = []
+    for k in range(P - 1):
+        a0, a1 = k * segments + j, k * segments + j1
+        b0, b1 = (k + 1) * segments + j, (k + 1) * segments + j1
+        faces += [np.c_[a0, b0, a1], np.c_[a1, b0, b1]]
+    f = np.vstack(faces)
+    # Wind the faces so that their geometric normals agree with the shading normals.
+    e1 = verts[f[:, 1]] - verts[f[:, 0]]
+    e2 = verts[f[:, 2]] - verts[f[:, 0]]
+    if float(np.sum(np.cross(e1, e2) * nrm[f[:, 0]])) < 0:
+        f = f[:, [0, 2, 1]]
+    R = placer.target_from_panel
+    return triangle_mesh(mi, name, R.apply(verts), f, attach, normals=R.rotate(nrm))
+
+
 def triangle_mesh(
-    mi: ModuleType, name: str, verts: np.ndarray, faces: np.ndarray, attach: dict[str, Any]
+    mi: ModuleType,
+    name: str,
+    verts: np.ndarray,
+    faces: np.ndarray,
+    attach: dict[str, Any],
+    normals: np.ndarray | None = None,
 ) -> Any:
     """A Mitsuba mesh from vertices (V, 3) and faces (F, 3); ``attach`` maps "bsdf" (and
-    optionally "emitter") to plugin dicts."""
+    optionally "emitter") to plugin dicts; ``normals`` (V, 3): per-vertex shading normals
+    (None = flat faces)."""
     props = mi.Properties()
     for key, plugin in attach.items():
         props[key] = mi.load_dict(plugin)
@@ -233,12 +321,14 @@ def triangle_mesh(
         vertex_count=verts.shape[0],
         face_count=faces.shape[0],
         props=props,
-        has_vertex_normals=False,
+        has_vertex_normals=normals is not None,
         has_vertex_texcoords=False,
     )
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(verts.astype(np.float32).ravel())
     params["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
+    if normals is not None:
+        params["vertex_normals"] = mi.Float(normals.astype(np.float32).ravel())
     params.update()
     return mesh
 
@@ -308,7 +398,11 @@ def target_shapes(
         "panel_front",
         "panel",
         {"type": "rectangle", "to_world": P.rect(mi, pc, ex, ey, pw / 2, ph / 2)},
-        lambda: _foil_bsdf(mi, pw, ph, cfg.panel.foil, rng),
+        (
+            (lambda: _foil_bsdf(mi, pw, ph, cfg.panel.foil, rng))
+            if cfg.panel.paint is None
+            else _metal_bsdf(cfg.panel.paint)
+        ),
     )
     edge_metal = _metal_bsdf(
         MetalConfig(metal="Al", roughness=0.35, diffuse_fraction=0.5, diffuse_rgb=(0.6, 0.6, 0.6))
@@ -343,7 +437,8 @@ def target_shapes(
             lambda su=su, sv=sv: _foil_bsdf(mi, su, sv, cfg.bus.foil, rng),
         )
 
-    # Docking ring: front annulus (its outer edge is the target-frame origin circle), two walls.
+    # Docking ring: front annulus (its outer edge is the target-frame origin circle), two walls;
+    # optionally a rounded rim, a lip, bolt heads and a foil-wrapped outer wall.
     r = cfg.ring
     ring_bsdf = _metal_bsdf(r.material)
     if wanted("ring", "ring_front"):
@@ -352,20 +447,37 @@ def target_shapes(
             if emissive is not None
             else {"bsdf": ring_bsdf}
         )
-        shapes["ring_front"] = {
-            "type": "mesh",
-            "mesh": _annulus_mesh(
+        if r.rim_fillet_m > 0:
+            prof, nrm = rounded_rim_profile(r.inner_radius_m, r.outer_radius_m, r.rim_fillet_m)
+            front = _revolved_mesh(mi, "ring_front", prof, nrm, P, attach)
+        else:
+            front = _annulus_mesh(
                 mi, "ring_front", r.inner_radius_m, r.outer_radius_m, 0.0, P, attach
-            ),
-        }
+            )
+        shapes["ring_front"] = {"type": "mesh", "mesh": front}
         part_of["ring_front"] = "ring"
     base = P.point(np.array([0.0, 0.0, lay.panel_front_z]))
     top = P.point(np.zeros(3))
+    # The walls end where the rounding or the lip begins.
+    wall_top = P.point(np.array([0.0, 0.0, -max(r.rim_fillet_m, r.lip_thickness_m)]))
+    inner_top = P.point(np.array([0.0, 0.0, -r.rim_fillet_m])) if r.rim_fillet_m > 0 else top
+    outer_bsdf: Any = ring_bsdf
+    if r.wall_foil is not None:
+        wall_len = r.height_m - max(r.rim_fillet_m, r.lip_thickness_m)
+        foil = r.wall_foil
+        outer_bsdf = lambda: _foil_bsdf(  # noqa: E731
+            mi, 2 * math.pi * r.wall_outer_radius_m, wall_len, foil, rng
+        )
     add(
         "ring_outer",
         "ring",
-        {"type": "cylinder", "p0": base, "p1": top, "radius": r.outer_radius_m},
-        ring_bsdf,
+        {
+            "type": "cylinder",
+            "p0": base,
+            "p1": top if r.rim_fillet_m == 0 and r.lip_width_m == 0 else wall_top,
+            "radius": r.wall_outer_radius_m,
+        },
+        outer_bsdf,
     )
     add(
         "ring_inner",
@@ -373,12 +485,71 @@ def target_shapes(
         {
             "type": "cylinder",
             "p0": base,
-            "p1": top,
+            "p1": inner_top,
             "radius": r.inner_radius_m,
             "flip_normals": True,
         },
         ring_bsdf,
     )
+    if r.lip_width_m > 0:
+        lip_z = -r.lip_thickness_m
+        add(
+            "ring_lip_edge",
+            "ring",
+            {
+                "type": "cylinder",
+                "p0": P.point(np.array([0.0, 0.0, lip_z])),
+                "p1": top,
+                "radius": r.outer_radius_m,
+            },
+            ring_bsdf,
+        )
+        if wanted("ring", "ring_lip_under"):
+            attach = (
+                {"bsdf": black, "emitter": glow("ring", "ring_lip_under")}
+                if emissive is not None
+                else {"bsdf": ring_bsdf}
+            )
+            shapes["ring_lip_under"] = {
+                "type": "mesh",
+                "mesh": _annulus_mesh(
+                    mi,
+                    "ring_lip_under",
+                    r.wall_outer_radius_m,
+                    r.outer_radius_m,
+                    lip_z,
+                    P,
+                    attach,
+                ),
+            }
+            part_of["ring_lip_under"] = "ring"
+    if r.bolts > 0:
+        bolt_bsdf = _metal_bsdf(r.bolt_material)
+        rb = r.bolt_circle_radius_m
+        for k in range(r.bolts):
+            phi = 2 * math.pi * (k + 0.5) / r.bolts
+            b0 = np.array([rb * math.cos(phi), rb * math.sin(phi), 0.0])
+            b1 = b0 + ez * r.bolt_height_m
+            add(
+                f"ring_bolt{k}_wall",
+                "ring",
+                {
+                    "type": "cylinder",
+                    "p0": P.point(b0),
+                    "p1": P.point(b1),
+                    "radius": r.bolt_radius_m,
+                },
+                bolt_bsdf,
+            )
+            add(
+                f"ring_bolt{k}_top",
+                "ring",
+                {
+                    "type": "disk",
+                    "to_world": P.rect(mi, b1, ex, ey, r.bolt_radius_m, r.bolt_radius_m),
+                },
+                bolt_bsdf,
+            )
 
     # Dark components: short cylinders with a top disk.
     comp = cfg.components
@@ -465,17 +636,25 @@ def target_shapes(
 
 
 def scene_dict(
-    shapes: dict[str, dict[str, Any]], light: dict[str, Any], max_depth: int
+    shapes: dict[str, dict[str, Any]],
+    light: dict[str, Any],
+    max_depth: int,
+    ambient_radiance: float = 0.0,
 ) -> dict[str, Any]:
     """Assemble a Mitsuba scene dict (no sensor: sensors are passed per render).
 
     Shapes of type ``mesh`` are pre-built ``mi.Mesh`` objects carrying their own BSDF.
+    ``ambient_radiance`` > 0 adds a uniform environment of that radiance (earthshine), hidden
+    from camera rays so that space stays black behind the target.
     """
-    d: dict[str, Any] = {
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": max_depth},
-        "light": light,
-    }
+    integrator: dict[str, Any] = {"type": "path", "max_depth": max_depth}
+    d: dict[str, Any] = {"type": "scene", "integrator": integrator, "light": light}
+    if ambient_radiance > 0:
+        integrator["hide_emitters"] = True
+        d["earthshine"] = {
+            "type": "constant",
+            "radiance": {"type": "rgb", "value": [float(ambient_radiance)] * 3},
+        }
     for shape_id, s in shapes.items():
         d[shape_id] = s["mesh"] if s["type"] == "mesh" else s
     return d

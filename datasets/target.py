@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -71,21 +72,41 @@ class FoilConfig:
             raise ConfigError("foil texel_m and facet_size_m must be positive")
 
 
+Finish = Literal["metal", "painted", "anodised"]
+
+
 @dataclass(frozen=True, kw_only=True)
 class MetalConfig:
-    """A machined or anodised metal part: a blend of a rough conductor and a diffuse coat.
+    """A solid (non-foil) surface finish; by default a machined metal part.
 
     Attributes:
+        finish: ``metal``: a blend of a rough conductor and a diffuse coat (polished metal is
+            a low ``roughness`` and a low ``diffuse_fraction``); ``painted``: Lambertian
+            paint of albedo ``diffuse_rgb`` (``metal``, ``roughness`` and
+            ``diffuse_fraction`` unused); ``anodised``: a dyed oxide layer, modelled as a
+            rough dielectric coat (GGX ``roughness``, IOR 1.5) over a diffuse base of albedo
+            ``diffuse_rgb`` (``metal`` and ``diffuse_fraction`` unused).
         metal: Mitsuba conductor name.
-        roughness: GGX alpha of the conductor.
+        roughness: GGX alpha of the conductor (or of the anodised coat).
         diffuse_fraction: weight of the diffuse layer in [0, 1].
-        diffuse_rgb: albedo of the diffuse layer.
+        diffuse_rgb: albedo of the diffuse layer (of the paint, of the anodised base).
     """
 
+    finish: Finish = "metal"
     metal: str = "Al"
     roughness: float = 0.25
     diffuse_fraction: float = 0.35
     diffuse_rgb: RGB = (0.75, 0.75, 0.75)
+
+    def __post_init__(self) -> None:
+        if not 0 < self.roughness <= 1:
+            raise ConfigError(f"material roughness must be in (0, 1], got {self.roughness}")
+        if not 0 <= self.diffuse_fraction <= 1:
+            raise ConfigError(
+                f"material diffuse_fraction must be in [0, 1], got {self.diffuse_fraction}"
+            )
+        if not all(0 <= c <= 1 for c in self.diffuse_rgb):
+            raise ConfigError(f"material diffuse_rgb must be in [0, 1], got {self.diffuse_rgb}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -103,7 +124,8 @@ class PanelConfig:
     """The rectangular front panel (a plate on the bus's front face).
 
     Its four front corners are the panel landmarks. ``corner0`` names which corner defines the
-    target x axis: index into (+x+y, -x+y, -x-y, +x-y) of the panel frame.
+    target x axis: index into (+x+y, -x+y, -x-y, +x-y) of the panel frame. ``paint``: a solid
+    finish (e.g. white paint) for the front face instead of ``foil``; None = foil.
     """
 
     width_m: float = 1.1
@@ -113,13 +135,36 @@ class PanelConfig:
         default_factory=lambda: FoilConfig(metal="Al", tint_rgb=(0.92, 0.92, 0.95))
     )
     corner0: int = 0
+    paint: MetalConfig | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
 class RingConfig:
     """The docking ring: a wall of height ``height_m`` between two radii, on the panel.
 
-    ``center_offset_m`` is the ring centre relative to the panel centre (panel frame x, y).
+    The target-frame origin is the centre of the ring's outer front edge: the circle of radius
+    ``outer_radius_m`` in the plane z = 0 (the ring's front-most plane, bolt heads aside).
+
+    Attributes:
+        outer_radius_m: radius of the outer front edge (target.yaml's ring radius) [m].
+        inner_radius_m: radius of the inner wall [m].
+        height_m: from the panel's front face to the front plane z = 0 [m].
+        center_offset_m: ring centre relative to the panel centre (panel frame x, y).
+        material: finish of the ring (rim, walls, lip).
+        rim_fillet_m: 0 = a flat front rim with sharp edges; > 0 rounds both front edges with
+            this radius (at most half the wall thickness: a half-round rim). The outer front
+            edge of a rounded rim is then the corner of its envelope: radius
+            ``outer_radius_m`` in the plane z = 0, where a sharp rim would have its edge.
+        lip_width_m, lip_thickness_m: an outward lip (flange) at the front: the front annulus
+            reaches ``outer_radius_m`` while the outer wall below the lip has radius
+            ``outer_radius_m - lip_width_m``; the lip is ``lip_thickness_m`` thick. 0 = no lip.
+        bolts: number of bolt heads on the front face, evenly spaced on the circle midway
+            between ``inner_radius_m`` and the outer wall (0 = none).
+        bolt_radius_m, bolt_height_m: bolt-head cylinders standing on the front face (they
+            reach ``bolt_height_m`` in front of the plane z = 0).
+        bolt_material: finish of the bolt heads.
+        wall_foil: MLI foil wrapped around the outer wall (the rim stays ``material``); None =
+            the wall has the ring's material.
     """
 
     outer_radius_m: float = 0.30
@@ -127,6 +172,26 @@ class RingConfig:
     height_m: float = 0.10
     center_offset_m: tuple[float, float] = (0.0, 0.0)
     material: MetalConfig = field(default_factory=MetalConfig)
+    rim_fillet_m: float = 0.0
+    lip_width_m: float = 0.0
+    lip_thickness_m: float = 0.0
+    bolts: int = 0
+    bolt_radius_m: float = 0.006
+    bolt_height_m: float = 0.005
+    bolt_material: MetalConfig = field(
+        default_factory=lambda: MetalConfig(metal="Cr", roughness=0.2, diffuse_fraction=0.3)
+    )
+    wall_foil: FoilConfig | None = None
+
+    @property
+    def wall_outer_radius_m(self) -> float:
+        """Radius of the outer wall (below the lip, if any) [m]."""
+        return self.outer_radius_m - self.lip_width_m
+
+    @property
+    def bolt_circle_radius_m(self) -> float:
+        """Radius of the circle through the bolt-head centres [m]."""
+        return 0.5 * (self.inner_radius_m + self.wall_outer_radius_m)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -189,6 +254,7 @@ class TargetConfig:
             raise ConfigError("ring: need 0 < inner_radius_m < outer_radius_m")
         if r.height_m <= 0:
             raise ConfigError("ring.height_m must be positive")
+        _check_ring_shape(r)
         ox, oy = r.center_offset_m
         if (
             abs(ox) + r.outer_radius_m > self.panel.width_m / 2
@@ -202,6 +268,35 @@ class TargetConfig:
                 raise ConfigError(f"components.positions_m[{i}] overlaps the ring")
         if self.panel.corner0 not in range(4):
             raise ConfigError("panel.corner0 must be 0, 1, 2 or 3")
+
+
+def _check_ring_shape(r: RingConfig) -> None:
+    """Rim, lip and bolt parameters that make a buildable ring (radii already checked)."""
+    if r.lip_width_m < 0 or r.lip_thickness_m < 0 or r.rim_fillet_m < 0:
+        raise ConfigError("ring: rim_fillet_m, lip_width_m and lip_thickness_m must be >= 0")
+    if (r.lip_width_m > 0) != (r.lip_thickness_m > 0):
+        raise ConfigError("ring: a lip needs both lip_width_m and lip_thickness_m > 0")
+    if r.lip_width_m > 0:
+        if r.wall_outer_radius_m <= r.inner_radius_m:
+            raise ConfigError("ring: the lip is wider than the wall (lip_width_m too large)")
+        if r.lip_thickness_m >= r.height_m:
+            raise ConfigError("ring: lip_thickness_m must be less than height_m")
+        if r.rim_fillet_m > 0:
+            raise ConfigError("ring: a rounded rim (rim_fillet_m) with a lip is not supported")
+    if r.rim_fillet_m > 0.5 * (r.outer_radius_m - r.inner_radius_m) + 1e-12:
+        raise ConfigError("ring: rim_fillet_m must be at most half the wall thickness")
+    if r.rim_fillet_m >= r.height_m:
+        raise ConfigError("ring: rim_fillet_m must be less than height_m")
+    if r.bolts < 0:
+        raise ConfigError(f"ring.bolts must be >= 0, got {r.bolts}")
+    if r.bolts > 0:
+        if r.bolt_radius_m <= 0 or r.bolt_height_m <= 0:
+            raise ConfigError("ring: bolt_radius_m and bolt_height_m must be positive")
+        if 2 * r.bolt_radius_m > r.wall_outer_radius_m - r.inner_radius_m:
+            raise ConfigError("ring: bolt heads are wider than the wall")
+        spacing = 2 * r.bolt_circle_radius_m * math.sin(math.pi / r.bolts)
+        if r.bolts > 1 and spacing <= 2 * r.bolt_radius_m:
+            raise ConfigError("ring: bolt heads overlap (too many bolts or too large)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -306,11 +401,31 @@ def geometry(cfg: TargetConfig) -> TargetGeometry:
         radius_m=cfg.ring.outer_radius_m,
         center=np.zeros(3),
         normal=np.array([0.0, 0.0, 1.0]),
-        extras={"inner_radius_m": cfg.ring.inner_radius_m, "height_m": cfg.ring.height_m},
+        extras=_ring_extras(cfg.ring),
     )
     return TargetGeometry(
         ring=ring, panel_corners=corners, components=tfp.apply(comps_p), bracket=None, extras=extras
     )
+
+
+def _ring_extras(r: RingConfig) -> dict[str, object]:
+    """target.yaml's extra ring keys; the rim, lip and bolt keys only where the ring has them
+    (a default ring writes exactly what it wrote before these options existed)."""
+    out: dict[str, object] = {"inner_radius_m": r.inner_radius_m, "height_m": r.height_m}
+    if r.rim_fillet_m > 0:
+        out["rim"] = "rounded"
+        out["rim_fillet_m"] = r.rim_fillet_m
+    if r.lip_width_m > 0:
+        out["wall_outer_radius_m"] = r.wall_outer_radius_m
+        out["lip_thickness_m"] = r.lip_thickness_m
+    if r.bolts > 0:
+        out["bolts"] = {
+            "count": r.bolts,
+            "circle_radius_m": r.bolt_circle_radius_m,
+            "radius_m": r.bolt_radius_m,
+            "height_m": r.bolt_height_m,
+        }
+    return out
 
 
 def bracket_geometry(cfg: TargetConfig, side: int = 1) -> Bracket:

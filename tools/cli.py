@@ -57,7 +57,9 @@ def _render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=_positive_int, help="render only the first N frames")
     p.add_argument("--size", type=_size, metavar="WxH", help="image size (same field of view)")
     p.add_argument("--spp", type=_positive_int, help="samples per pixel")
-    p.add_argument("--seed", type=int, help="seed of textures and noise")
+    p.add_argument(
+        "--seed", type=int, help="seed of textures and noise (random: also of the scene)"
+    )
     p.add_argument(
         "--config",
         type=Path,
@@ -69,7 +71,7 @@ def _render_args(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from satpose.datasets.scenarios import PRESETS
+    from satpose.datasets.random_family import scenario_names
 
     parser = argparse.ArgumentParser(
         prog="satpose",
@@ -86,9 +88,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "preset",
-        choices=sorted(PRESETS),
+        choices=scenario_names(),
         metavar="PRESET",
-        help=f"one of: {', '.join(sorted(PRESETS))}",
+        help=f"one of: {', '.join(scenario_names())} (random: a different satellite and "
+        "scene per --seed, docs/renderer.md 'Random family')",
     )
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output sequence folder")
     _render_args(p)
@@ -186,9 +189,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _scenario_from_args(args: argparse.Namespace) -> Scenario:
     from satpose.datasets.config import replace_nested, yaml_problem
-    from satpose.datasets.scenarios import preset, scaled
+    from satpose.datasets.random_family import named_scenario
+    from satpose.datasets.scenarios import scaled
 
-    scenario = preset(args.preset)
+    scenario = named_scenario(args.preset, args.seed)
     if args.config is not None:
         try:
             overrides = yaml.safe_load(args.config.read_text(encoding="utf-8")) or {}
