@@ -37,7 +37,7 @@ from scipy import ndimage
 from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.config import to_plain
 from satpose.datasets.geometry import Rigid3
-from satpose.datasets.scenarios import Scenario, Trajectory, rim_in_view, trajectory
+from satpose.datasets.scenarios import Scenario, trajectory
 from satpose.datasets.scene import RenderError, load_mitsuba, scene_dict, target_shapes
 from satpose.datasets.sequence import SequenceWriter, TargetGeometry
 from satpose.datasets.servicer_rings import RingsShapes
@@ -415,19 +415,4 @@ def render_sequence(
             )
             if progress is not None:
                 progress(k)
-        writer.add_file(RIM_IN_VIEW_FILE, rim_in_view_csv(scenario, traj))
     return Path(out)
-
-
-RIM_IN_VIEW_FILE = "rim_in_view.csv"
-"""Per frame, the fraction of the ring's outer front edge inside each image (not part of the
-sequence format: a statistic of the generator, `satpose.datasets.scenarios.rim_in_view`)."""
-
-
-def rim_in_view_csv(scenario: Scenario, traj: Trajectory) -> str:
-    """``frame,left[,right]`` rows of `rim_in_view` (3 decimals)."""
-    frac = rim_in_view(scenario, traj)
-    cams = ["left", "right"][: frac.shape[1]]
-    rows = [",".join(["frame", *cams])]
-    rows += [",".join([str(k), *(f"{v:.3f}" for v in row)]) for k, row in enumerate(frac)]
-    return "\n".join(rows) + "\n"

@@ -731,12 +731,6 @@ def _dump_yaml(data: Mapping[str, Any], path: Path) -> None:
     )
 
 
-_FORMAT_FILES = frozenset(
-    {"sequence.yaml", "calib.yaml", "frames.csv", "groundtruth.csv", "target.yaml"}
-    | {"left", "right", "masks"}
-)
-
-
 class SequenceWriter:
     """Write a sequence folder frame by frame; it appears at ``path`` only on `close`.
 
@@ -805,7 +799,6 @@ class SequenceWriter:
         self.overwrite = overwrite
         self._frames: list[dict[str, Any]] = []
         self._truth: list[dict[str, float]] = []
-        self._extra: dict[str, str] = {}
         self._closed = False
 
     def __enter__(self) -> SequenceWriter:
@@ -904,13 +897,6 @@ class SequenceWriter:
             self._truth.append(trow)
         self._frames.append(row)
 
-    def add_file(self, name: str, text: str) -> None:
-        """A text file outside the format (e.g. a per-frame statistic of the generator),
-        written into the folder with everything else. Readers of the format ignore it."""
-        if "/" in name or name.startswith(".") or name in _FORMAT_FILES:
-            raise SatposeError(f"SequenceWriter.add_file: {name!r} is not a free file name")
-        self._extra[name] = text
-
     def _write_png(self, path: Path, img: np.ndarray, camera: PinholeCamera) -> None:
         a = np.asarray(img)
         if a.dtype not in (np.uint8, np.uint16) or a.ndim not in (2, 3):
@@ -950,8 +936,6 @@ class SequenceWriter:
                 df.to_csv(self._tmp / "groundtruth.csv", index=False, float_format="%.15g")
             if self.target is not None:
                 _dump_yaml(target_to_yaml(self.target), self._tmp / "target.yaml")
-            for name, text in self._extra.items():
-                (self._tmp / name).write_text(text, encoding="utf-8")
             replace_dir(self._tmp, self.path, self.overwrite)
         except BaseException:
             self.abort()

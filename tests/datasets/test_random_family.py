@@ -12,7 +12,6 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 import yaml
 
@@ -212,8 +211,18 @@ def test_tiny_random_render_through_the_cli(
     assert seq.target.ring.radius_m == drawn.target.ring.outer_radius_m
     stored = from_plain(Scenario, seq.generator["scenario"])
     assert stored == scaled(drawn, frames=2, size=(320, 256), spp=4)
-    rim = pd.read_csv(out / "rim_in_view.csv")
-    assert list(rim.columns) == ["frame", "left", "right"] and len(rim) == 2
+    rim = rim_in_view(stored)  # from sequence.yaml alone: nothing outside the format
+    assert rim.shape == (2, 2) and np.all(rim[0] == 1.0)
+    assert sorted(p.name for p in out.iterdir()) == [
+        "calib.yaml",
+        "frames.csv",
+        "groundtruth.csv",
+        "left",
+        "masks",
+        "right",
+        "sequence.yaml",
+        "target.yaml",
+    ]
     assert yaml.safe_load((out / "sequence.yaml").read_text())["name"] == f"random-{seed}"
 
 
