@@ -37,11 +37,13 @@ from satpose.datasets.sequence import load_sequence
 from satpose.tools.files import atomic_write, read_tum, write_tum
 from satpose.tools.metrics import (
     RANGE_BANDS_M,
+    SignedErrors,
     band_label,
     band_mask,
     body_rotation_offset,
     pose_errors,
     relative_errors,
+    signed_errors,
 )
 from satpose.tools.pipeline import read_estimate_npz, read_provenance
 
@@ -137,6 +139,43 @@ def _load(run: Path) -> list[Trajectory]:
 
 
 @dataclass(frozen=True, kw_only=True)
+class Bias:
+    """The systematic and the random part of the signed errors (`signed_errors`) over one
+    trajectory: means and standard deviations of depth [cm], lateral [cm] (the mean lateral
+    vector's length; the deviations' RMS distance from it) and tilt [deg]. A bias larger than a
+    third of its random part is a defect (``defects``)."""
+
+    depth_cm: float
+    depth_sd_cm: float
+    lateral_cm: float
+    lateral_sd_cm: float
+    tilt_deg: float
+    tilt_sd_deg: float
+
+    @staticmethod
+    def of(e: SignedErrors) -> Bias:
+        lat = 100 * e.lateral_m
+        mean_lat = lat.mean(axis=0)
+        return Bias(
+            depth_cm=100 * float(e.depth_m.mean()),
+            depth_sd_cm=100 * float(e.depth_m.std(ddof=1)) if len(e.depth_m) > 1 else 0.0,
+            lateral_cm=float(np.linalg.norm(mean_lat)),
+            lateral_sd_cm=float(np.sqrt(np.sum((lat - mean_lat) ** 2, axis=1).mean())),
+            tilt_deg=float(e.tilt_deg.mean()),
+            tilt_sd_deg=float(e.tilt_deg.std(ddof=1)) if len(e.tilt_deg) > 1 else 0.0,
+        )
+
+    def defects(self) -> list[str]:
+        """The error terms whose bias exceeds a third of their random part."""
+        pairs = {
+            "depth": (self.depth_cm, self.depth_sd_cm),
+            "lateral": (self.lateral_cm, self.lateral_sd_cm),
+            "tilt": (self.tilt_deg, self.tilt_sd_deg),
+        }
+        return [name for name, (b, sd) in pairs.items() if abs(b) > sd / 3.0]
+
+
+@dataclass(frozen=True, kw_only=True)
 class BandMetrics:
     """Errors of the frames in one range band."""
 
@@ -167,6 +206,7 @@ class TrajectoryMetrics:
     nees_mean: float | None
     nees_in_95: float | None
     spin_err_deg_per_frame: float | None
+    bias: Bias
     per_frame: pd.DataFrame
 
 
@@ -229,12 +269,18 @@ def evaluate_run(sequence_path: Path, run: Path) -> dict[str, TrajectoryMetrics]
                     np.degrees(np.linalg.norm(truth.angular_velocity[truth_rows], axis=1)) * dtf
                 )
                 spin_err = float(np.mean(np.abs(sub.spin_rate_deg_per_frame(dtf) - true_rate)))
+        signed = signed_errors(est, gt)
         per_frame = pd.DataFrame(
             {
                 "frame": truth.frame[truth_rows],
                 "range_m": err.range_m,
                 "pos_err_cm": 100 * err.position_m,
                 "rot_err_deg": err.rotation_deg,
+                "depth_err_cm": 100 * signed.depth_m,
+                "lateral_x_err_cm": 100 * signed.lateral_m[:, 0],
+                "lateral_y_err_cm": 100 * signed.lateral_m[:, 1],
+                "tilt_err_deg": signed.tilt_deg,
+                "normal_err_deg": signed.normal_deg,
             }
         )
         results[traj.name] = TrajectoryMetrics(
@@ -254,6 +300,7 @@ def evaluate_run(sequence_path: Path, run: Path) -> dict[str, TrajectoryMetrics]
             nees_mean=nees_mean,
             nees_in_95=nees_in,
             spin_err_deg_per_frame=spin_err,
+            bias=Bias.of(signed),
             per_frame=per_frame,
         )
     return results
@@ -323,5 +370,18 @@ def write_metrics(
     atomic_write(run / "metrics.json", lambda tmp: Path(tmp).write_text(text))
     df = pd.concat(
         [m.per_frame.assign(trajectory=name) for name, m in results.items()], ignore_index=True
-    )[["trajectory", "frame", "range_m", "pos_err_cm", "rot_err_deg"]]
+    )[
+        [
+            "trajectory",
+            "frame",
+            "range_m",
+            "pos_err_cm",
+            "rot_err_deg",
+            "depth_err_cm",
+            "lateral_x_err_cm",
+            "lateral_y_err_cm",
+            "tilt_err_deg",
+            "normal_err_deg",
+        ]
+    ]
     atomic_write(run / "metrics.csv", lambda tmp: df.to_csv(tmp, index=False, float_format="%.6g"))

@@ -67,6 +67,52 @@ def pose_errors(
     )
 
 
+@dataclass(frozen=True, kw_only=True)
+class SignedErrors:
+    """Per-frame signed errors, the terms a bias shows in (their means over a sequence are
+    the bias, their standard deviations the random part).
+
+    Attributes:
+        depth_m: position error along the true line of sight ``t_true / |t_true|``
+            (+: the estimate is farther than the truth) [m].
+        lateral_m: the rest of the position error, (N, 2) in the camera's x and y after the
+            line-of-sight component is removed [m].
+        tilt_deg: angle between the ring normal (body z) and the true direction to the
+            camera, estimate minus truth (+: the estimate sees the ring more obliquely; a
+            position error alone leaves it 0) [deg].
+        normal_deg: angle between the estimated and the true ring normal [deg].
+    """
+
+    depth_m: np.ndarray
+    lateral_m: np.ndarray
+    tilt_deg: np.ndarray
+    normal_deg: np.ndarray
+
+
+def signed_errors(est: Sequence[Rigid3], truth: Sequence[Rigid3]) -> SignedErrors:
+    """Depth, lateral, tilt and normal errors of matched pose lists (``left_cam_from_target``;
+    the body z axis is the ring normal in both, whatever the estimate's x axis)."""
+
+    def tilt(n: np.ndarray, los: np.ndarray) -> float:
+        return float(np.degrees(np.arccos(np.clip(-(n @ los), -1.0, 1.0))))
+
+    depth, lateral, dtilt, normal = [], [], [], []
+    for e, t in zip(est, truth, strict=True):
+        los = t.t / np.linalg.norm(t.t)
+        d = e.t - t.t
+        depth.append(float(d @ los))
+        lateral.append((d - (d @ los) * los)[:2])
+        dtilt.append(tilt(e.R[:, 2], los) - tilt(t.R[:, 2], los))
+        ne, nt = e.R[:, 2], t.R[:, 2]
+        normal.append(float(np.degrees(np.arctan2(np.linalg.norm(np.cross(ne, nt)), ne @ nt))))
+    return SignedErrors(
+        depth_m=np.asarray(depth),
+        lateral_m=np.asarray(lateral).reshape(-1, 2),
+        tilt_deg=np.asarray(dtilt),
+        normal_deg=np.asarray(normal),
+    )
+
+
 def relative_errors(
     est: Sequence[Rigid3], truth: Sequence[Rigid3], offset: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
