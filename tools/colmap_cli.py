@@ -56,6 +56,9 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--config", type=Path, metavar="FILE", help="YAML/TOML CalibCheckConfig (see docs)"
     )
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace an existing output folder of this command"
+    )
     p.set_defaults(handler=cmd_check_calib)
 
     p = subparsers.add_parser(
@@ -76,6 +79,9 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     p.add_argument("--config", type=Path, metavar="FILE", help="YAML/TOML SfmCheckConfig")
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace an existing output folder of this command"
+    )
     p.set_defaults(handler=cmd_check_sfm)
 
 
@@ -207,14 +213,17 @@ def cmd_check_calib(args: argparse.Namespace) -> None:
 
     from satpose.datasets.sequence import load_sequence
     from satpose.tools.calibcheck import CalibCheckConfig, check_calibration
-    from satpose.tools.files import prepare_out
+    from satpose.tools.files import check_out, staged_output
 
     cfg = load_config(CalibCheckConfig, args.config) if args.config else CalibCheckConfig()
     seq = load_sequence(args.sequence)
-    prepare_out(args.out)
+    check_out(args.out, args.overwrite, marker="calib_report.yaml", what="a check-calib")
     with tqdm(total=len(seq), desc="detect board", unit="frame", file=sys.stderr, delay=0.5) as bar:
         result = check_calibration(seq, cfg, progress=lambda _k: bar.update(1))
-    write_calib_outputs(result, cfg, args.out)
+    with staged_output(
+        args.out, args.overwrite, marker="calib_report.yaml", what="a check-calib"
+    ) as stage:
+        write_calib_outputs(result, cfg, stage)
     _print_calib(result)
     print(f"wrote {args.out}/calib.yaml (OpenCV), calib_pycolmap.yaml, calib_report.yaml")
 
@@ -349,20 +358,23 @@ def cmd_check_sfm(args: argparse.Namespace) -> None:
     import pycolmap
 
     from satpose.datasets.sequence import load_sequence
-    from satpose.tools.files import prepare_out, read_tum
+    from satpose.tools.files import check_out, read_tum, staged_output
     from satpose.tools.sfmcheck import SfmCheckConfig, check_sfm, match_trajectory
 
     cfg = load_config(SfmCheckConfig, args.config) if args.config else SfmCheckConfig()
     seq = load_sequence(args.sequence)
     t_s, poses = read_tum(args.trajectory)
     trajectory = match_trajectory(seq, t_s, poses, str(args.trajectory))
-    prepare_out(args.out)
+    check_out(args.out, args.overwrite, marker="sfm_report.yaml", what="a check-sfm")
     # COLMAP logs every step at INFO and warns about thread counts; keep its errors only
     # unless asked (-v).
     if not getattr(args, "verbose", 0):
         pycolmap.logging.minloglevel = int(pycolmap.logging.Level.ERROR)
     result = check_sfm(seq, trajectory, cfg, progress=lambda m: print(m, file=sys.stderr))
-    write_sfm_outputs(result, cfg, seq, str(args.trajectory), args.out)
+    with staged_output(
+        args.out, args.overwrite, marker="sfm_report.yaml", what="a check-sfm"
+    ) as stage:
+        write_sfm_outputs(result, cfg, seq, str(args.trajectory), stage)
     h = result.health
     pos = np.array([x.position_m for x in result.disagreement])
     rot = np.array([x.rotation_deg for x in result.disagreement])

@@ -26,7 +26,6 @@ TUM: ``t tx ty tz qx qy qz qw`` per line, space separated (readable by evo).
 
 from __future__ import annotations
 
-import os
 import shutil
 import uuid
 from collections import defaultdict
@@ -53,18 +52,6 @@ from satpose.frontend.measurements import (
 
 class ResultFileError(SatposeError):
     """A result file is missing, unreadable or malformed."""
-
-
-def prepare_out(out: Path) -> None:
-    """Create an output folder (and parents) or raise a one-line error if impossible."""
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ResultFileError(
-            f"{out}: cannot create the output folder ({exc.strerror or exc})"
-        ) from None
-    if not os.access(out, os.W_OK):
-        raise ResultFileError(f"{out}: output folder is not writable")
 
 
 def check_out(

@@ -215,3 +215,27 @@ def test_check_calib_without_a_board_is_a_one_line_error(
     assert main(["check-calib", str(synthetic_sequence), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "board" in err and "target.yaml" in err
+
+
+@pytest.mark.render
+def test_check_calib_refuses_an_existing_folder_and_replaces_its_own(
+    board_sequence: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An existing non-empty folder is refused before any work (exit 2, one line); a
+    check-calib folder is replaced with --overwrite, built aside and renamed (no staging
+    folder left)."""
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "keep.txt").write_text("mine")
+    for extra in ([], ["--overwrite"]):  # never someone else's folder, even with --overwrite
+        assert main(["check-calib", str(board_sequence), "--out", str(other), *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "not a check-calib folder" in err
+    assert sorted(p.name for p in other.iterdir()) == ["keep.txt"]
+    out = tmp_path / "check"
+    assert main(["check-calib", str(board_sequence), "--out", str(out)]) == 0
+    assert main(["check-calib", str(board_sequence), "--out", str(out)]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert main(["check-calib", str(board_sequence), "--out", str(out), "--overwrite"]) == 0
+    assert (out / "calib_report.yaml").is_file()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
