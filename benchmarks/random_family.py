@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from _common import machine_summary, write_page  # benchmarks/_common.py (scripts run from the root)
 
+from satpose.datasets.errors import SatposeError
 from satpose.datasets.random_family import TUNING_SEEDS, VALIDATION_SEEDS, random_draw
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import rim_in_view, scaled
@@ -113,8 +114,10 @@ def one(seed: int, args: argparse.Namespace) -> dict[str, Any]:
                 row[key] = res[name].nees_in_95
         row.update(ring_checks(seq, run, s))
         row["status"] = "ok"
-    except Exception as exc:  # a benchmark records every failure and goes on
-        row["status"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:120]}"
+    except SatposeError as exc:  # a clear refusal (e.g. no frame gave a pose)
+        row["status"] = f"refused: {str(exc).splitlines()[0][:120]}"
+    except Exception as exc:  # a bug: recorded, and the benchmark goes on
+        row["status"] = f"exception: {type(exc).__name__}: {str(exc).splitlines()[0][:120]}"
         traceback.print_exc()
     print({k: v for k, v in row.items() if not k.endswith("_bias")}, flush=True)
     return row
@@ -153,11 +156,13 @@ def markdown(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
         nees_off = np.array([r.get("nees_off", np.nan) for r in ok])
         nees_on = np.array([r.get("nees_on", np.nan) for r in ok])
         defects = sum(bool(r["fe_bias"].defects()) for r in ok)
+        refused = sum(r["status"].startswith("refused") for r in rows)
+        crashed = sum(r["status"].startswith("exception") for r in rows)
         summary = [
             (
-                "sequences run / ended in an exception",
-                f"{len(ok)} / {len(rows) - len(ok)}",
-                "- / 0",
+                "sequences with a trajectory / refused (no pose) / ended in an exception",
+                f"{len(ok)} / {refused} / {crashed}",
+                "- / - / 0",
             ),
             ("per-frame pos, median [cm]", _f(np.median(fe_pos), ".2f"), "<= 1.0"),
             ("per-frame rot, median [deg]", _f(np.median(fe_rot), ".2f"), "<= 0.5"),
