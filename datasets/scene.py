@@ -439,15 +439,13 @@ def target_shapes(
                     "type": "rectangle",
                     "to_world": P.rect(mi, wc, u, ey * side, span / 2, w.chord_m / 2),
                 },
-                lambda: {
+                lambda span=span: {  # called at once by add(); bound for clarity
                     "type": "roughplastic",
                     "distribution": "ggx",
                     "alpha": 0.08,
                     "diffuse_reflectance": _bitmap(
                         mi,
-                        solar_cell_texture(
-                            span, w.chord_m, w.cell_size_m, w.cell_rgb, 0.002, rng
-                        ),
+                        solar_cell_texture(span, w.chord_m, w.cell_size_m, w.cell_rgb, 0.002, rng),
                     ),
                 },
             )

@@ -150,13 +150,16 @@ class RateConfig:
             skewness along its major axis, `axis_skewness`): the spin rate ``omega`` keeps
             the skewed end on the same side of the fitted line, its mirror ``180 deg * f -
             omega`` flips it every frame. Off: ``theta'`` only.
-        min_skewness: frames whose ``|skewness|`` is below this carry no half-turn cue (an
-            outline symmetric about its minor axis scatters by ~0.05-0.15 on rendered
-            frames).
+        min_skewness: frames whose ``|skewness|`` is below this carry no half-turn cue (the
+            symmetric ``spin-far`` outline scatters by ~0.05-0.15 at 320x256; a wing of 0.5
+            instead of 1.3 m gives 0.02-0.4).
         half_turn_alpha: a hypothesis (folded or mirror) is taken when the chance that
             uninformative cue signs agree with it as well is below this (two-sided binomial
-            over the frames with a cue: 11 of 11, 13 of 14, 17 of 19 at 1e-3) and the
-            other hypothesis' is not.
+            over the frames with a cue: 8 of 8, 11 of 12, 16 of 19 at 0.01) and the other
+            hypothesis' is not. On uninformative signs about 1% of windows are resolved (at
+            random); on the rendered symmetric target none of 558 were, and 0.001 resolves
+            27% instead of 84% of the asymmetric target's windows
+            (docs/results/spin_fold.md).
         model: what is fitted to the buffer. ``two-sine``: the paper's eq. 9 on the doubled
             angle (see the module docstring). ``projection``: eq. 8 generalised to any angle
             between spin axis and line of sight, ``theta' = psi + atan2(c sin(omega t + phi),
@@ -195,8 +198,8 @@ class RateConfig:
     fold_guard_sigma: float = 3.0
     max_rate_deg_s: float | None = None
     half_turn: bool = True
-    min_skewness: float = 0.1
-    half_turn_alpha: float = 1e-3
+    min_skewness: float = 0.07
+    half_turn_alpha: float = 0.01
     model: Literal["two-sine", "projection"] = "two-sine"
     min_explained: float = 0.85
     max_angle_noise_deg: float = 15.0
@@ -1101,6 +1104,15 @@ def estimate_spin_rate(
                 f"{math.degrees(other.sigma):.3f} deg/s): the outline's angle is not that of "
                 "one line turning about one axis",
             )
+        # Both models passed: theta''s noise is what the better-fitting one leaves. The
+        # two-sine model's residuals on an oblique view hold its mismatch (harmonics of the
+        # doubled angle); counted as noise they made sigma 1.5-3x the spread over windows
+        # (docs/results/spin_fold.md). What the mismatch does to the rate is bounded by the
+        # two models' difference, added in quadrature (on noise-free oblique series it is
+        # the error itself).
+        if other.noise < primary.noise:
+            sigma = math.hypot(sigma * other.noise / primary.noise, rate - other.rate)
+            fitted["angle_noise_rad"] = other.noise
     return _resolve_fold(t, th, sk, (t0, t1), dt, rate, sigma, fitted, cfg, refuse, m)
 
 

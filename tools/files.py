@@ -14,7 +14,8 @@ can filter it without knowing satpose; `read_measurements` rebuilds the frontend
   ``[cx, cy, cz, nx, ny, nz, r]``; landmark ``[ul, vl, ur, vr, X, Y, Z]`` (NaN where
   absent); pose ``[tx, ty, tz, qx, qy, qz, qw]``; spin ``[rate_rad_s, sigma_rad_s,
   window_start_s, window_end_s, samples, *candidates_rad_s]`` (rate and sigma NaN when refused
-  without a candidate; the candidates of an ``ambiguous`` rate follow, none otherwise); timing ``[ms]``.
+  without a candidate; the candidates of an ``ambiguous`` rate follow, none otherwise);
+  timing ``[ms]``.
 - ``covariance`` (list<float64>): row-major, matching ``values`` (5x5; 7x7; 3x3 of X; 6x6
   over [rotation, translation]).
 - ``points`` (list<float64>): ellipse edge points ``[x0, y0, x1, y1, ...]``.

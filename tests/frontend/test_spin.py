@@ -244,8 +244,9 @@ def test_a_cue_contradicting_the_prior_is_refused() -> None:
 
 
 def test_uninformative_cue_signs_leave_the_fold_ambiguous() -> None:
-    """Random skewness signs (a symmetric outline): the chance to pick one hypothesis is below
-    2 x half_turn_alpha per window; over 300 seeded windows at most 3 (expected <= 0.6)."""
+    """Random skewness signs (a symmetric outline): a hypothesis is picked only when 16 or more
+    of 19 signs agree with it (chance 0.44% each, 0.9% per window); over 300 seeded windows
+    expected 2.7 (sd 1.6), bound 9."""
     rng = np.random.default_rng(3)
     t, a = turning_line(100.0, 1.0)
     resolved = 0
@@ -254,7 +255,7 @@ def test_uninformative_cue_signs_leave_the_fold_ambiguous() -> None:
         fit = estimate_spin_rate(t, a, skewness=sk)
         assert fit.status in (SpinStatus.AMBIGUOUS, SpinStatus.OK), fit.reason
         resolved += fit.ok
-    assert resolved <= 3, resolved
+    assert resolved <= 9, resolved
 
 
 def test_alias_rates() -> None:
