@@ -25,12 +25,15 @@ Over a sliding buffer of the last ``n`` frames (seed 001: ``n = 19``):
    ``t`` in seconds). Its standard deviation propagates the per-frame angle noise, estimated
    from the angle residuals, through the least-squares solution. ``RateConfig.model =
    "projection"`` fits eq. 8 generalised to an oblique spin axis instead (docs/spin.md).
-6. Refusals, each with a reason: too few usable frames; the angle turning too slowly for the
-   window; a rate too close to the fold at ``90 deg * frame rate`` (beyond it the sampled angle
-   of a rate ``omega`` equals that of ``180 deg * f - omega``; with ``max_rate_deg_s`` above the
-   fold every rate that fits equally is listed); an angle series the spin does not explain
-   (line of sight near the spin plane, target not spinning or not elongated); a fit that left
-   the spectral peak.
+6. The fold: the sampled ``theta'`` of a rate ``omega`` equals that of ``180 deg * f - omega``.
+   The outline's half-turn cue (its skewness along the major axis, step 3) keeps the body's
+   end on one side of the fitted line for ``omega`` and flips it every frame for the mirror;
+   when it does not decide, every rate up to ``max_rate_deg_s`` (default: below ``180 deg *
+   f``) that fits is listed in an ``ambiguous`` estimate, never one of them as the rate.
+7. Refusals, each with a reason: too few usable frames; the angle turning too slowly for the
+   window; a rate too close to the fold at ``90 deg * frame rate``; an angle series the spin
+   does not explain (line of sight near the spin plane, target not spinning or not
+   elongated); a fit that left the spectral peak.
 
 numpy and OpenCV only (the frontend never imports gtsam).
 """
