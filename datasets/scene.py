@@ -600,24 +600,23 @@ def target_shapes(
                     },
                     strut,
                 )
-            wc = np.array([wing_x0 + side * w.span_m / 2, P5[1], P5[2]])
+            span = w.span_m if side > 0 or w.nx_span_m is None else w.nx_span_m
+            wc = np.array([wing_x0 + side * span / 2, P5[1], P5[2]])
             u = ex * side
             add(
                 f"wing_{tag}_front",
                 "wings",
                 {
                     "type": "rectangle",
-                    "to_world": P.rect(mi, wc, u, ey * side, w.span_m / 2, w.chord_m / 2),
+                    "to_world": P.rect(mi, wc, u, ey * side, span / 2, w.chord_m / 2),
                 },
-                lambda: {
+                lambda span=span: {  # called at once by add(); bound for clarity
                     "type": "roughplastic",
                     "distribution": "ggx",
                     "alpha": 0.08,
                     "diffuse_reflectance": _bitmap(
                         mi,
-                        solar_cell_texture(
-                            w.span_m, w.chord_m, w.cell_size_m, w.cell_rgb, 0.002, rng
-                        ),
+                        solar_cell_texture(span, w.chord_m, w.cell_size_m, w.cell_rgb, 0.002, rng),
                     ),
                 },
             )
@@ -627,7 +626,7 @@ def target_shapes(
                 {
                     "type": "rectangle",
                     "to_world": P.rect(
-                        mi, wc - ez * w.thickness_m, u, -ey * side, w.span_m / 2, w.chord_m / 2
+                        mi, wc - ez * w.thickness_m, u, -ey * side, span / 2, w.chord_m / 2
                     ),
                 },
                 {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7] * 3}},

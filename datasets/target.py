@@ -218,7 +218,8 @@ class WingsConfig:
 
     The bracket lies in a plane parallel to the panel at mid-depth of the bus: base P1P2 on the
     side face along y, apex P5 ``bracket_height_m`` out along x. The wing (cells facing +z)
-    starts ``gap_m`` beyond the apex.
+    starts ``gap_m`` beyond the apex. ``nx_span_m`` gives the -x wing its own span (an
+    asymmetric outline; None: both wings ``span_m``).
     """
 
     enabled: bool = True
@@ -227,6 +228,7 @@ class WingsConfig:
     strut_radius_m: float = 0.015
     gap_m: float = 0.08
     span_m: float = 1.3
+    nx_span_m: float | None = None
     chord_m: float = 0.7
     thickness_m: float = 0.03
     cell_size_m: tuple[float, float] = (0.08, 0.05)
@@ -255,6 +257,8 @@ class TargetConfig:
         if r.height_m <= 0:
             raise ConfigError("ring.height_m must be positive")
         _check_ring_shape(r)
+        if self.wings.nx_span_m is not None and not self.wings.nx_span_m > 0:
+            raise ConfigError("wings.nx_span_m must be positive (or null: span_m)")
         ox, oy = r.center_offset_m
         if (
             abs(ox) + r.outer_radius_m > self.panel.width_m / 2

@@ -249,7 +249,8 @@ class SpinStatus(StrEnum):
     OK = "ok"
     TOO_FEW_SAMPLES = "too-few-samples"  # fewer usable frames in the window than required
     TOO_SLOW = "too-slow"  # the angle's period is not short enough for the window
-    ALIASING = "aliasing"  # several spin rates fit the sampled angle equally well
+    ALIASING = "aliasing"  # the rate is within the noise of a fold (or above the stated prior)
+    AMBIGUOUS = "ambiguous"  # several rates fit equally well: all listed in ``candidates_rad_s``
     GEOMETRY = "geometry"  # the angle does not show the spin (view near the spin plane, ...)
     NO_FIT = "no-fit"  # the least-squares fit failed or moved away from the spectral peak
 
@@ -271,6 +272,9 @@ class SpinRateMeasurement:
         reason: why it was refused (one sentence); empty when ``ok``.
         window_start_s, window_end_s: times of the first and last frame of the window [s].
         samples: frames in the window whose angle was usable.
+        candidates_rad_s: ``ambiguous`` only: every rate [rad/s] that explains the window
+            equally well (sorted, at least two; ``rate_rad_s`` is then NaN and ``sigma_rad_s``
+            the standard deviation each candidate has); empty otherwise.
     """
 
     rate_rad_s: float
@@ -280,9 +284,19 @@ class SpinRateMeasurement:
     window_end_s: float
     samples: int
     reason: str = ""
+    candidates_rad_s: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "status", SpinStatus(self.status))
+        cands = tuple(sorted(float(c) for c in self.candidates_rad_s))
+        object.__setattr__(self, "candidates_rad_s", cands)
+        if self.status is SpinStatus.AMBIGUOUS:
+            if len(cands) < 2 or not all(np.isfinite(c) and c >= 0 for c in cands):
+                raise MeasurementError(
+                    f"an ambiguous spin rate needs at least two finite candidates >= 0, got {cands}"
+                )
+        elif cands:
+            raise MeasurementError(f"only an ambiguous spin rate lists candidates ({self.status})")
         object.__setattr__(self, "rate_rad_s", float(self.rate_rad_s))
         object.__setattr__(self, "sigma_rad_s", float(self.sigma_rad_s))
         if not (np.isfinite(self.window_start_s) and np.isfinite(self.window_end_s)):

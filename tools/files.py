@@ -13,8 +13,9 @@ can filter it without knowing satpose; `read_measurements` rebuilds the frontend
 - ``values`` (list<float64>): ellipse ``[cx, cy, a, b, angle]``; ring
   ``[cx, cy, cz, nx, ny, nz, r]``; landmark ``[ul, vl, ur, vr, X, Y, Z]`` (NaN where
   absent); pose ``[tx, ty, tz, qx, qy, qz, qw]``; spin ``[rate_rad_s, sigma_rad_s,
-  window_start_s, window_end_s, samples]`` (rate and sigma NaN when refused without a
-  candidate); timing ``[ms]``.
+  window_start_s, window_end_s, samples, *candidates_rad_s]`` (rate and sigma NaN when refused
+  without a candidate; the candidates of an ``ambiguous`` rate follow, none otherwise);
+  timing ``[ms]``.
 - ``covariance`` (list<float64>): row-major, matching ``values`` (5x5; 7x7; 3x3 of X; 6x6
   over [rotation, translation]).
 - ``points`` (list<float64>): ellipse edge points ``[x0, y0, x1, y1, ...]``.
@@ -209,6 +210,7 @@ def measurements_to_frame(items: Iterable[FrameMeasurements], timings: bool = Tr
                         sp.window_start_s,
                         sp.window_end_s,
                         float(sp.samples),
+                        *sp.candidates_rad_s,
                     ],
                     text=sp.reason,
                 )
@@ -327,6 +329,7 @@ def _frame_from_rows(frame: int, recs: list[dict[str, Any]]) -> FrameMeasurement
                 window_end_s=float(v[3]),
                 samples=int(v[4]),
                 reason=str(r["text"] or ""),
+                candidates_rad_s=tuple(float(c) for c in v[5:]),
             )
         elif item == "failure":
             failures.append(str(r["text"]))

@@ -3,10 +3,12 @@
 Runs `satpose.frontend.spin.SpinFrontend` over the sequence's left (or only) images, prints the
 rate series and writes into DIR (each file atomically):
 
-- ``spin.csv``: ``t_s,rate_deg_s,sigma_deg_s,status`` — one row per estimate (every frame once
-  the buffer is full); ``t_s`` is the last frame of the window; ``status`` is ``ok`` or the
-  refusal (`satpose.frontend.measurements.SpinStatus`), whose reason is printed; rate and
-  sigma are empty when a refusal has no candidate.
+- ``spin.csv``: ``t_s,rate_deg_s,sigma_deg_s,status,candidates_deg_s,reason`` — one row per
+  estimate (every frame once the buffer is full); ``t_s`` is the last frame of the window;
+  ``status`` is ``ok``, ``ambiguous`` (rate empty, every rate that fits in
+  ``candidates_deg_s``, separated by ``;``, each with ``sigma_deg_s``) or the refusal
+  (`satpose.frontend.measurements.SpinStatus`); ``reason`` says why it is not ``ok``; rate
+  and sigma are empty when a refusal has no candidate.
 - ``spin_angles.csv``: ``frame,t_s,theta_deg,elongation,failure`` — the per-frame silhouette
   angle ``theta'`` the rate comes from.
 - ``spin.png``: ``theta'`` over the sequence with the fitted model, a close-up of the last
@@ -26,6 +28,7 @@ import csv
 import io
 import math
 import sys
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -39,7 +42,7 @@ if TYPE_CHECKING:  # the frontend (OpenCV) loads only when the command runs
     from satpose.frontend.measurements import FrameMeasurements
     from satpose.frontend.spin import SpinFit, SpinStep
 
-SPIN_CSV_COLUMNS = ("t_s", "rate_deg_s", "sigma_deg_s", "status")
+SPIN_CSV_COLUMNS = ("t_s", "rate_deg_s", "sigma_deg_s", "status", "candidates_deg_s", "reason")
 
 
 def register(subparsers: Any) -> None:
@@ -62,6 +65,15 @@ def register(subparsers: Any) -> None:
         "e.g. rate: {window_frames: 30, model: projection}",
     )
     p.add_argument(
+        "--max-rate",
+        type=float,
+        metavar="DEG_S",
+        help="the highest spin rate the target may have [deg/s] (rate.max_rate_deg_s; "
+        "overrides the config). Default: below 180 deg per frame; without a half-turn cue "
+        "in the outline a rate and its mirror 180 deg * frame rate - rate are then both "
+        "reported (ambiguous). Below 90 deg per frame (the paper's assumption) there is one",
+    )
+    p.add_argument(
         "--overwrite",
         action="store_true",
         help="replace an existing spin output folder (once the new one is complete)",
@@ -70,7 +82,9 @@ def register(subparsers: Any) -> None:
 
 
 def cmd_spin(args: argparse.Namespace) -> None:
-    run_spin_on(args.sequence, args.out, args.config, overwrite=args.overwrite)
+    run_spin_on(
+        args.sequence, args.out, args.config, overwrite=args.overwrite, max_rate_deg_s=args.max_rate
+    )
 
 
 @dataclass(frozen=True)
@@ -83,10 +97,16 @@ class SpinRun:
 
 
 def run_spin_on(
-    sequence_path: Path, out: Path, config_path: Path | None, overwrite: bool = False
+    sequence_path: Path,
+    out: Path,
+    config_path: Path | None,
+    overwrite: bool = False,
+    max_rate_deg_s: float | None = None,
 ) -> SpinRun:
     """The spin frontend over a whole sequence, with a progress bar; prints the rate series
-    and writes the result files (see the module docstring)."""
+    and a summary (accepted, ambiguous, refused by kind, the first reasons) and writes the
+    result files (see the module docstring). ``max_rate_deg_s`` overrides the config's."""
+    from dataclasses import replace
     from functools import partial
 
     from tqdm import tqdm
@@ -100,6 +120,13 @@ def run_spin_on(
 
     seq = load_sequence(sequence_path)
     config = load_config(SpinConfig, config_path) if config_path else SpinConfig()
+    if max_rate_deg_s is not None:
+        from satpose.frontend.spin import RateConfig
+
+        if not max_rate_deg_s > 0:
+            raise SequenceError(seq.root, "--max-rate", f"must be positive, got {max_rate_deg_s}")
+        rate_cfg = RateConfig(**{**to_plain(config.rate), "max_rate_deg_s": max_rate_deg_s})
+        config = replace(config, rate=rate_cfg)
     n = config.rate.window_frames
     if len(seq) < n:
         raise SequenceError(
@@ -140,23 +167,64 @@ def run_spin_on(
             truth = (seq.truth.t_s, np.degrees(np.linalg.norm(seq.truth.angular_velocity, axis=1)))
         atomic_write(stage / "spin.png", lambda tmp: plot_spin(steps, tmp, seq.name, truth))
     files = [out / name for name in names]
-    if config.rate.max_rate_deg_s is None:
-        print(
-            f"rates fold at 90 deg per frame ({90.0 * seq.rate_hz:g} deg/s at "
-            f"{seq.rate_hz:g} frames/s): a faster spin is reported folded unless "
-            "rate.max_rate_deg_s says it is possible"
-        )
+    print(fold_text(config.rate.max_rate_deg_s, config.rate.half_turn, seq.rate_hz))
     print(rate_series_text(steps))
-    fits = [s.fit for s in steps if s.fit is not None]
-    ok = [f for f in fits if f.ok]
-    summary = f"{len(fits)} estimates, {len(ok)} accepted"
-    if ok:
-        rates = np.degrees([f.rate_rad_s for f in ok])
-        summary += f": mean {rates.mean():.3f} deg/s, std {rates.std():.3f} deg/s"
-    print(f"{summary}; wrote {', '.join(str(f) for f in files)}")
+    print(f"{summary_text(steps)}; wrote {', '.join(str(f) for f in files)}")
     if bad.count:
         print(bad.summary(len(results)))
     return SpinRun(steps, results, files)
+
+
+def fold_text(max_rate_deg_s: float | None, half_turn: bool, rate_hz: float) -> str:
+    """What the rates below assume about the fold (printed before the series)."""
+    fold, full = 90.0 * rate_hz, 180.0 * rate_hz
+    head = (
+        f"theta' folds at 90 deg per frame ({fold:g} deg/s at {rate_hz:g} frames/s): a spin "
+        f"omega and {full:g} - omega sample alike"
+    )
+    if max_rate_deg_s is not None and max_rate_deg_s < fold:
+        return f"{head}; assumed below {max_rate_deg_s:g} deg/s (rate.max_rate_deg_s)"
+    top = (
+        f"up to {max_rate_deg_s:g} deg/s (rate.max_rate_deg_s)"
+        if max_rate_deg_s is not None
+        else f"below {full:g} deg/s (two frames per turn; rate.max_rate_deg_s sets another limit)"
+    )
+    cue = (
+        "the outline's half-turn cue (skewness) picks one where it is consistent; "
+        if half_turn
+        else "the half-turn cue is off; "
+    )
+    return f"{head}; rates {top}: {cue}otherwise every candidate is listed (ambiguous)"
+
+
+def summary_text(steps: list[SpinStep], first: int = 3) -> str:
+    """How many estimates were accepted, ambiguous and refused (by kind), the accepted rates'
+    mean and spread, and the first distinct refusal reasons."""
+    fits = [s.fit for s in steps if s.fit is not None]
+    ok = [f for f in fits if f.ok]
+    amb = [f for f in fits if f.status.value == "ambiguous"]
+    refused = [f for f in fits if not f.ok and f.status.value != "ambiguous"]
+    text = f"{len(fits)} estimates: {len(ok)} accepted"
+    if ok:
+        rates = np.degrees([f.rate_rad_s for f in ok])
+        text += f" (mean {rates.mean():.3f} deg/s, std {rates.std():.3f} deg/s)"
+    text += f", {len(amb)} ambiguous"
+    if amb:
+        cands = Counter(
+            " or ".join(f"{math.degrees(c):.1f}" for c in f.candidates_rad_s) for f in amb
+        )
+        text += f" ({cands.most_common(1)[0][0]} deg/s most often)"
+    text += f", {len(refused)} refused"
+    if refused:
+        kinds = Counter(f.status.value for f in refused)
+        text += " (" + ", ".join(f"{k} {v}" for k, v in kinds.most_common()) + ")"
+        firsts: dict[str, str] = {}  # reason -> status, in order of appearance
+        for f in refused:
+            firsts.setdefault(f.reason, f.status.value)
+        text += "; first reasons: " + " | ".join(
+            f"{kind}: {why}" for why, kind in list(firsts.items())[:first]
+        )
+    return text
 
 
 def _num(x: float, digits: int = 6) -> str:
@@ -165,16 +233,25 @@ def _num(x: float, digits: int = 6) -> str:
 
 def spin_csv(steps: list[SpinStep]) -> str:
     """spin.csv: one row per estimate, columns `SPIN_CSV_COLUMNS`."""
-    lines = [",".join(SPIN_CSV_COLUMNS)]
+    lines: list[list[str]] = [list(SPIN_CSV_COLUMNS)]
     for s in steps:
         if s.fit is None:
             continue
         f = s.fit
+        cands = ";".join(_num(math.degrees(c)) for c in f.candidates_rad_s)
         lines.append(
-            f"{s.t_s:.6f},{_num(math.degrees(f.rate_rad_s))},"
-            f"{_num(math.degrees(f.sigma_rad_s))},{f.status.value}"
+            [
+                f"{s.t_s:.6f}",
+                _num(math.degrees(f.rate_rad_s)),
+                _num(math.degrees(f.sigma_rad_s)),
+                f.status.value,
+                cands,
+                f.reason,
+            ]
         )
-    return "\n".join(lines) + "\n"
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerows(lines)
+    return buf.getvalue()
 
 
 def angles_csv(steps: list[SpinStep]) -> str:
@@ -207,6 +284,12 @@ def rate_series_text(steps: list[SpinStep]) -> str:
             lines.append(
                 f"t = {s.t_s:8.2f} s  {math.degrees(f.rate_rad_s):9.4f} +- "
                 f"{math.degrees(f.sigma_rad_s):.4f} deg/s  ok"
+            )
+        elif f.candidates_rad_s:
+            listed = " or ".join(f"{math.degrees(c):.4f}" for c in f.candidates_rad_s)
+            lines.append(
+                f"t = {s.t_s:8.2f} s  {listed} +- {math.degrees(f.sigma_rad_s):.4f} deg/s  "
+                f"{f.status.value}: {f.reason}"
             )
         else:
             cand = (
@@ -305,11 +388,20 @@ def plot_spin(
             color="C3",
             label="refused (candidate)",
         )
+    amb = [(tk, c) for tk, f in fits for c in f.candidates_rad_s]
+    if amb:
+        ax.plot(
+            [tk for tk, _ in amb],
+            [math.degrees(c) for _, c in amb],
+            "+",
+            color="C2",
+            label="ambiguous (every candidate)",
+        )
     if truth is not None:
         ax.plot(truth[0], truth[1], "--", color="k", lw=1, label="truth (groundtruth.csv)")
     ax.set(xlabel="t [s] (end of window)", ylabel="spin rate [deg/s]", title="spin rate")
     ax.ticklabel_format(axis="y", useOffset=False)
-    if ok or refused or truth is not None:
+    if ok or refused or amb or truth is not None:
         ax.legend(loc="best", fontsize=8)
     fig.savefig(path, format="png", dpi=100)
     plt.close(fig)

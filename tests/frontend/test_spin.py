@@ -24,6 +24,7 @@ from satpose.frontend.measurements import SpinStatus
 from satpose.frontend.spin import (
     RateConfig,
     RegionConfig,
+    SpinConfig,
     SpinFrontend,
     SpinRateEstimator,
     SpinStep,
@@ -35,6 +36,13 @@ from satpose.frontend.spin import (
 
 MODELS = ("two-sine", "projection")
 EXACT_DEG_S = 1e-6
+PAPER_MAX_RATE_DEG_S = 89.0  # the paper's assumption at 1 frame/s: below the fold (90 deg/frame)
+
+
+def paper_prior(**kwargs: object) -> RateConfig:
+    """A rate config stating the paper's assumption (the rate is below the fold), so that a
+    ``theta'`` series without a half-turn cue has one candidate."""
+    return RateConfig(**{"max_rate_deg_s": PAPER_MAX_RATE_DEG_S, **kwargs})  # type: ignore[arg-type]
 
 
 def turning_line(
@@ -67,7 +75,7 @@ def turning_line(
 def test_noise_free_axis_along_line_of_sight_is_exact(model: str, rate: float) -> None:
     """Eq. 8 (c = 1): theta' = theta + phi modulo pi; both models describe it exactly."""
     t, a = turning_line(rate, 1.0)
-    fit = estimate_spin_rate(t, a, RateConfig(model=model))
+    fit = estimate_spin_rate(t, a, paper_prior(model=model))
     assert fit.status is SpinStatus.OK, fit.reason
     assert abs(math.degrees(fit.rate_rad_s) - rate) < EXACT_DEG_S
     assert fit.window_start_s == 0.0 and fit.window_end_s == 18.0 and fit.samples == 19
@@ -77,7 +85,7 @@ def test_noise_free_axis_along_line_of_sight_is_exact(model: str, rate: float) -
 @pytest.mark.parametrize("rate", [23.0, 71.0])
 def test_noise_free_oblique_axis_is_exact_for_the_projection_model(c: float, rate: float) -> None:
     t, a = turning_line(rate, c)
-    fit = estimate_spin_rate(t, a, RateConfig(model="projection"))
+    fit = estimate_spin_rate(t, a, paper_prior(model="projection"))
     assert fit.ok, fit.reason
     assert abs(math.degrees(fit.rate_rad_s) - rate) < EXACT_DEG_S
     # the fitted curve goes through the samples
@@ -90,7 +98,7 @@ def test_two_sine_model_on_an_oblique_axis_reports_its_mismatch(rate: float) -> 
     """The paper's model does not describe an oblique view exactly (harmonics of the doubled
     angle): the error stays within the sigma it reports, which is not zero."""
     t, a = turning_line(rate, 0.5)
-    fit = estimate_spin_rate(t, a, RateConfig(model="two-sine"))
+    fit = estimate_spin_rate(t, a, paper_prior(model="two-sine"))
     assert fit.ok, fit.reason
     err = abs(math.degrees(fit.rate_rad_s) - rate)
     assert err < 3.0 * math.degrees(fit.sigma_rad_s)
@@ -113,7 +121,7 @@ def test_noisy_series_unbiased_with_honest_sigma(model: str, c: float) -> None:
             noise_deg=0.5,
             rng=rng,
         )
-        fit = estimate_spin_rate(t, a, RateConfig(model=model))
+        fit = estimate_spin_rate(t, a, paper_prior(model=model))
         assert fit.ok, fit.reason
         errs.append(math.degrees(fit.rate_rad_s) - rate)
         sig.append(math.degrees(fit.sigma_rad_s))
@@ -129,7 +137,11 @@ def test_missing_frames_and_uneven_times() -> None:
     keep = np.ones(t.size, bool)
     keep[[2, 3, 9, 15]] = False
     fit = estimate_spin_rate(
-        t[keep], a[keep], RateConfig(model="projection"), window_s=(0.0, 18.0), frame_interval_s=1.0
+        t[keep],
+        a[keep],
+        paper_prior(model="projection"),
+        window_s=(0.0, 18.0),
+        frame_interval_s=1.0,
     )
     assert fit.ok and fit.samples == 15
     assert abs(math.degrees(fit.rate_rad_s) - 33.0) < EXACT_DEG_S
@@ -143,25 +155,107 @@ def test_theta_is_a_line_angle_any_representative_modulo_pi_gives_the_same_rate(
     rng = np.random.default_rng(3)
     t, a = turning_line(52.0, 0.7, noise_deg=0.3, rng=rng)
     shifted = a + math.pi * rng.integers(-3, 4, a.size)
-    f1 = estimate_spin_rate(t, a, RateConfig(model=model))
-    f2 = estimate_spin_rate(t, shifted, RateConfig(model=model))
+    f1 = estimate_spin_rate(t, a, paper_prior(model=model))
+    f2 = estimate_spin_rate(t, shifted, paper_prior(model=model))
     assert f1.ok and f2.ok
     assert abs(f1.rate_rad_s - f2.rate_rad_s) < 1e-9
     assert abs(f1.sigma_rad_s - f2.sigma_rad_s) < 1e-9
 
 
-def test_rates_above_the_fold_alias_and_are_refused_when_the_prior_allows_them() -> None:
-    """theta' repeats every half turn, so at 1 frame/s a spin of 120 deg/s samples exactly like
-    60 deg/s turning the other way. Without a prior the estimate is the folded 60 deg/s; with
-    ``max_rate_deg_s`` above the fold the ambiguity is refused and the candidates listed."""
+def turning_body(
+    rate_deg_s: float,
+    c: float = 1.0,
+    *,
+    n: int = 19,
+    skew: float = 0.3,
+    phase: float = 0.4,
+    psi: float = 0.3,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`turning_line` of an asymmetric body: times, ``theta'`` in [0, pi) and the skewness
+    along ``(cos theta', sin theta')``, ``+skew`` when the body's long end points that way."""
+    t = np.arange(n, dtype=float)
+    x = math.radians(rate_deg_s) * t + phase
+    heading = psi + np.arctan2(c * np.sin(x), np.cos(x))  # the long end's full-turn angle
+    a = heading % math.pi
+    sk = np.where(np.cos(heading - a) > 0, skew, -skew)
+    return t, a, sk
+
+
+def test_rates_above_the_fold_are_ambiguous_without_a_cue() -> None:
+    """theta' repeats every half turn, so at 1 frame/s a spin of 100 deg/s samples exactly like
+    80 deg/s turning the other way (noise-free series: the candidates are exact). Without a
+    half-turn cue both are listed, never one rate; a stated prior below the fold (the paper's
+    assumption) leaves one; a prior above 180 deg/s lists every alias up to it."""
+    t, a = turning_line(100.0, 1.0)
+    for cfg in (RateConfig(), RateConfig(half_turn=False)):
+        fit = estimate_spin_rate(t, a, cfg, skewness=np.full(t.size, np.nan))
+        assert fit.status is SpinStatus.AMBIGUOUS and math.isnan(fit.rate_rad_s), fit.reason
+        np.testing.assert_allclose(np.degrees(fit.candidates_rad_s), [80.0, 100.0], atol=1e-6)
+        assert fit.sigma_rad_s > 0 and "80.00 or 100.00" in fit.reason
+        m = fit.measurement()
+        assert m.status is SpinStatus.AMBIGUOUS and m.candidates_rad_s == fit.candidates_rad_s
+    prior = estimate_spin_rate(t, a, paper_prior())
+    assert prior.ok and abs(math.degrees(prior.rate_rad_s) - 80.0) < EXACT_DEG_S
     t, a = turning_line(120.0, 1.0)
-    folded = estimate_spin_rate(t, a)
-    assert folded.ok and abs(math.degrees(folded.rate_rad_s) - 60.0) < EXACT_DEG_S
-    refused = estimate_spin_rate(t, a, RateConfig(max_rate_deg_s=150.0))
-    assert refused.status is SpinStatus.ALIASING
-    assert "60.00" in refused.reason and "120.00" in refused.reason
-    below = estimate_spin_rate(t, a, RateConfig(max_rate_deg_s=80.0))
-    assert below.ok
+    wide = estimate_spin_rate(t, a, RateConfig(max_rate_deg_s=250.0))
+    assert wide.status is SpinStatus.AMBIGUOUS
+    np.testing.assert_allclose(np.degrees(wide.candidates_rad_s), [60.0, 120.0, 240.0], atol=1e-6)
+
+
+@pytest.mark.parametrize("model", MODELS)
+@pytest.mark.parametrize(("rate", "c"), [(25.0, 1.0), (80.0, 1.0), (100.0, 1.0), (130.0, 0.7)])
+def test_half_turn_cue_resolves_the_fold(model: str, rate: float, c: float) -> None:
+    """An asymmetric outline's skewed end stays with the body: noise-free, the folded rate and
+    its mirror are told apart exactly, above and below the fold, also with 4 of 19 frames
+    without a cue (15 agreeing frames: chance 6e-5). Exact for the model that describes the
+    series; the two-sine model on an oblique view is within 3 of its sigma (its mismatch)."""
+    t, a, sk = turning_body(rate, c)
+    sk[[2, 7, 8, 13]] = np.nan
+    fit = estimate_spin_rate(t, a, RateConfig(model=model), skewness=sk)
+    assert fit.ok, fit.reason
+    exact = c == 1.0 or model == "projection"
+    tol = EXACT_DEG_S if exact else 3.0 * math.degrees(fit.sigma_rad_s)
+    assert abs(math.degrees(fit.rate_rad_s) - rate) < tol
+    assert fit.half_turn is not None and fit.half_turn.frames == 15
+    assert fit.half_turn.verdict == ("folded" if rate < 90.0 else "mirror")
+    # the same series with the long end swapped everywhere (skewness negated): same answer
+    again = estimate_spin_rate(t, a, RateConfig(model=model), skewness=-sk)
+    assert again.ok and abs(again.rate_rad_s - fit.rate_rad_s) < 1e-12
+
+
+def test_beyond_180_deg_per_frame_a_longer_window_and_a_prior_list_the_full_turn_aliases() -> None:
+    """170 deg/s at 1 Hz turns theta' like 10 deg/s: a 19-frame window holds 1.06 periods (too
+    slow, as for any 10 deg/s spin); 40 frames measure it, and the cue picks 170 over 10.
+    With ``max_rate_deg_s`` 400 the full-turn angle also fits 360 - 170 = 190 deg/s."""
+    t, a, sk = turning_body(170.0, n=19)
+    assert estimate_spin_rate(t, a, skewness=sk).status is SpinStatus.TOO_SLOW
+    t, a, sk = turning_body(170.0, n=40)
+    fit = estimate_spin_rate(t, a, RateConfig(window_frames=40), skewness=sk)
+    assert fit.ok and abs(math.degrees(fit.rate_rad_s) - 170.0) < EXACT_DEG_S, fit.reason
+    wide = estimate_spin_rate(t, a, RateConfig(window_frames=40, max_rate_deg_s=400.0), skewness=sk)
+    assert wide.status is SpinStatus.AMBIGUOUS
+    np.testing.assert_allclose(np.degrees(wide.candidates_rad_s), [170.0, 190.0], atol=1e-6)
+
+
+def test_a_cue_contradicting_the_prior_is_refused() -> None:
+    t, a, sk = turning_body(100.0)
+    fit = estimate_spin_rate(t, a, paper_prior(), skewness=sk)
+    assert fit.status is SpinStatus.ALIASING and "100.00" in fit.reason
+
+
+def test_uninformative_cue_signs_leave_the_fold_ambiguous() -> None:
+    """Random skewness signs (a symmetric outline): a hypothesis is picked only when 16 or more
+    of 19 signs agree with it (chance 0.44% each, 0.9% per window); over 300 seeded windows
+    expected 2.7 (sd 1.6), bound 9."""
+    rng = np.random.default_rng(3)
+    t, a = turning_line(100.0, 1.0)
+    resolved = 0
+    for _ in range(300):
+        sk = rng.choice([-0.3, 0.3], t.size)
+        fit = estimate_spin_rate(t, a, skewness=sk)
+        assert fit.status in (SpinStatus.AMBIGUOUS, SpinStatus.OK), fit.reason
+        resolved += fit.ok
+    assert resolved <= 9, resolved
 
 
 def test_alias_rates() -> None:
@@ -175,7 +269,7 @@ def test_rate_near_the_fold_is_refused() -> None:
     """At 89 deg/s (1 frame/s) the rate and its mirror 91 deg/s are within the noise."""
     rng = np.random.default_rng(5)
     t, a = turning_line(89.0, 0.3, noise_deg=2.0, rng=rng)
-    fit = estimate_spin_rate(t, a, RateConfig(model="two-sine"))
+    fit = estimate_spin_rate(t, a, paper_prior(model="two-sine"))
     assert fit.status is SpinStatus.ALIASING, (fit.status, fit.reason)
     assert "fold at 90.0" in fit.reason
 
@@ -185,7 +279,9 @@ def test_rate_near_the_fold_is_refused() -> None:
 
 def test_too_few_usable_frames() -> None:
     t, a = turning_line(40.0, 1.0)
-    fit = estimate_spin_rate(t[:8], a[:8], window_s=(0.0, 18.0), frame_interval_s=1.0)
+    fit = estimate_spin_rate(
+        t[:8], a[:8], paper_prior(), window_s=(0.0, 18.0), frame_interval_s=1.0
+    )
     assert fit.status is SpinStatus.TOO_FEW_SAMPLES and "8 usable" in fit.reason
     assert not fit.measurement().ok and math.isnan(fit.measurement().rate_rad_s)
 
@@ -193,10 +289,10 @@ def test_too_few_usable_frames() -> None:
 def test_too_slow_for_the_window_and_a_longer_window_fixes_it() -> None:
     """5 deg/s: theta' turns once in 36 s, less than the 1.5 periods a 19 s window needs."""
     t, a = turning_line(5.0, 0.9)
-    slow = estimate_spin_rate(t, a)
+    slow = estimate_spin_rate(t, a, paper_prior())
     assert slow.status is SpinStatus.TOO_SLOW and "longer window" in slow.reason
     t, a = turning_line(5.0, 0.9, n=80)
-    fit = estimate_spin_rate(t, a, RateConfig(model="projection", window_frames=80))
+    fit = estimate_spin_rate(t, a, paper_prior(model="projection", window_frames=80))
     assert fit.ok and abs(math.degrees(fit.rate_rad_s) - 5.0) < EXACT_DEG_S
 
 
@@ -205,7 +301,7 @@ def test_constant_angle_is_a_geometry_refusal() -> None:
     theta' does not move."""
     rng = np.random.default_rng(2)
     t = np.arange(19.0)
-    fit = estimate_spin_rate(t, 1.0 + rng.normal(0, math.radians(0.5), 19))
+    fit = estimate_spin_rate(t, 1.0 + rng.normal(0, math.radians(0.5), 19), paper_prior())
     assert fit.status is SpinStatus.GEOMETRY and "hardly changes" in fit.reason
 
 
@@ -213,13 +309,13 @@ def test_line_of_sight_near_the_spin_plane_is_a_geometry_refusal() -> None:
     """The projection model measures the axis angle (acos |c|) and refuses beyond 70 deg,
     even on a clean series; the two-sine model's own refusal there is its poor fit."""
     t, a = turning_line(40.0, 0.2)  # acos(0.2) = 78.5 deg from the line of sight
-    fit = estimate_spin_rate(t, a, RateConfig(model="projection"))
+    fit = estimate_spin_rate(t, a, paper_prior(model="projection"))
     assert fit.status is SpinStatus.GEOMETRY and "78 deg from the line of sight" in fit.reason
-    alone = RateConfig(model="projection", max_axis_angle_deg=80.0, cross_check=False)
+    alone = paper_prior(model="projection", max_axis_angle_deg=80.0, cross_check=False)
     relaxed = estimate_spin_rate(t, a, alone)
     assert relaxed.ok and abs(math.degrees(relaxed.rate_rad_s) - 40.0) < EXACT_DEG_S
     # with the cross-check (default) the two-sine model's poor fit refuses it as well
-    checked = estimate_spin_rate(t, a, RateConfig(model="projection", max_axis_angle_deg=80.0))
+    checked = estimate_spin_rate(t, a, paper_prior(model="projection", max_axis_angle_deg=80.0))
     assert checked.status is SpinStatus.GEOMETRY and "two-sine model explains" in checked.reason
 
 
@@ -230,15 +326,15 @@ def test_cross_check_refuses_what_one_model_alone_accepts() -> None:
     models that disagree by more than ``cross_check_sigma`` are refused too."""
     rng = np.random.default_rng(7)
     t, a = turning_line(30.0, 0.3, noise_deg=0.5, rng=rng)
-    alone = estimate_spin_rate(t, a, RateConfig(cross_check=False))
+    alone = estimate_spin_rate(t, a, paper_prior(cross_check=False))
     assert alone.ok and abs(math.degrees(alone.rate_rad_s) - 30.0) > 0.2
-    fit = estimate_spin_rate(t, a)
+    fit = estimate_spin_rate(t, a, paper_prior())
     assert fit.status is SpinStatus.GEOMETRY
     assert "projection model refuses" in fit.reason and "72 deg" in fit.reason
     assert math.isfinite(fit.rate_rad_s)  # the refused candidate is kept for diagnostics
     t, a = turning_line(40.0, 0.8, noise_deg=0.5, rng=rng)
-    assert estimate_spin_rate(t, a).ok
-    tight = estimate_spin_rate(t, a, RateConfig(cross_check_sigma=1e-6))
+    assert estimate_spin_rate(t, a, paper_prior()).ok
+    tight = estimate_spin_rate(t, a, paper_prior(cross_check_sigma=1e-6))
     assert tight.status is SpinStatus.GEOMETRY and "disagree" in tight.reason
 
 
@@ -247,7 +343,7 @@ def test_unstructured_angles_are_a_geometry_refusal() -> None:
     rng = np.random.default_rng(4)
     t = np.arange(19.0)
     for model in MODELS:
-        fit = estimate_spin_rate(t, rng.uniform(0, math.pi, 19), RateConfig(model=model))
+        fit = estimate_spin_rate(t, rng.uniform(0, math.pi, 19), paper_prior(model=model))
         assert fit.status in (SpinStatus.GEOMETRY, SpinStatus.NO_FIT), (model, fit.reason)
         assert fit.reason
 
@@ -273,7 +369,7 @@ def test_invalid_inputs_and_configs() -> None:
 def test_sliding_buffer() -> None:
     t, a = turning_line(40.0, 1.0, n=25)
     a[20] = np.nan  # a frame without an angle still counts toward the window
-    est = SpinRateEstimator(RateConfig(window_frames=19))
+    est = SpinRateEstimator(paper_prior(window_frames=19))
     fits = [est.add(float(tk), float(ak)) for tk, ak in zip(t, a, strict=True)]
     assert all(f is None for f in fits[:18])
     assert all(f is not None and f.ok for f in fits[18:])
@@ -288,10 +384,15 @@ def test_sliding_buffer() -> None:
 
 
 def _bar_image(
-    angle_deg: float, *, gap_px: float = 0.0, size: tuple[int, int] = (200, 160)
+    angle_deg: float,
+    *,
+    gap_px: float = 0.0,
+    size: tuple[int, int] = (200, 160),
+    short_wing: float = 1.0,
 ) -> np.ndarray:
     """Grey image: a dim 'wing - bus - wing' bar through the centre at ``angle_deg`` (from x
-    toward y); with a gap the wings are separate blobs."""
+    toward y); with a gap the wings are separate blobs; ``short_wing`` scales the length of
+    the wing on the ``-u`` side (an asymmetric outline)."""
     w, h = size
     img = np.zeros((h, w), np.uint8)
     c = np.array([w / 2, h / 2])
@@ -304,7 +405,8 @@ def _bar_image(
 
     box(c, 24, 20, 160)  # bus
     for side in (-1, 1):
-        box(c + side * u * (12 + gap_px + 25), 50, 14, 40)  # wings, dim
+        span = 50.0 * (short_wing if side < 0 else 1.0)
+        box(c + side * u * (12 + gap_px + span / 2), span, 14, 40)  # wings, dim
     rng = np.random.default_rng(0)
     return np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
 
@@ -318,6 +420,21 @@ def test_angle_of_a_drawn_target(angle: float, gap: float) -> None:
     assert abs(d) < 0.5, d  # sub-degree on a 150 px target
     # the region holds both wings (joined across the gap), not the bright bus alone
     assert obs.axes_px[0] > 60.0 and obs.elongation > 0.6
+
+
+@pytest.mark.parametrize("angle", [0.0, 33.0, 90.0, 151.0, 200.0, 333.0])
+def test_skewness_of_drawn_outlines(angle: float) -> None:
+    """Symmetric wings: skewness about 0. One wing half as long: its sign points the other way
+    (toward the long wing), whichever representative modulo 180 deg theta' is."""
+    sym = measure_angle(_bar_image(angle))
+    assert sym.ok and abs(sym.skewness) < 0.05, sym.skewness
+    obs = measure_angle(_bar_image(angle, short_wing=0.5))
+    assert obs.ok, obs.failure
+    d = (math.degrees(obs.angle_rad) - angle + 90.0) % 180.0 - 90.0
+    assert abs(d) < 1.0, d
+    # the long (+u) wing is at ``angle``: positive skewness when theta' points there
+    toward_long = math.cos(obs.angle_rad - math.radians(angle)) > 0
+    assert (obs.skewness > 0) == toward_long and abs(obs.skewness) > 0.05, obs.skewness
 
 
 def test_region_failures() -> None:
@@ -344,7 +461,8 @@ def test_rendered_spin_far_end_to_end(rendered_spin: Path) -> None:
     assert seq.truth.angular_velocity is not None
     truth = np.degrees(np.linalg.norm(seq.truth.angular_velocity, axis=1))
     steps: list[SpinStep] = []
-    fe = SpinFrontend(seq.calibration.left, hook=steps.append)
+    config = SpinConfig(rate=paper_prior())
+    fe = SpinFrontend(seq.calibration.left, config, hook=steps.append)
     out = [fe.process_frame(frame) for frame in seq]
     assert all(m.spin is None for m in out[:18])
     spins = [m.spin for m in out[18:]]

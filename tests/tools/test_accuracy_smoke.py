@@ -70,7 +70,9 @@ def test_spin_rate_is_accurate(
     0.014-0.020 deg/s. Bounds: |mean error| < 0.04 deg/s (the paper's on-orbit spread is
     0.05) and every window within 4 stated sigma."""
     out = tmp_path / "spin"
-    assert main(["spin", str(rendered_spin), "--out", str(out)]) == 0
+    # the paper's assumption stated (below the fold): spin-far's outline is symmetric, so
+    # without it every window lists 60 and 120 deg/s (docs/spin.md, "Beyond the fold")
+    assert main(["spin", str(rendered_spin), "--out", str(out), "--max-rate", "89"]) == 0
     seq = load_sequence(rendered_spin)
     assert seq.truth is not None and seq.truth.angular_velocity is not None
     truth = np.degrees(np.linalg.norm(seq.truth.angular_velocity, axis=1))
