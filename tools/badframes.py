@@ -19,10 +19,13 @@ import logging
 import re
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import TypeVar
 
-from satpose.frontend.measurements import INTERNAL_ERROR, exception_failure
+from satpose.datasets.sequence import Frame
+from satpose.datasets.sequence import Sequence as FrameSequence
+from satpose.frontend.measurements import INTERNAL_ERROR, FrameMeasurements, exception_failure
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +72,37 @@ def guarded(stage: str, frame: int, step: Callable[[], T]) -> tuple[T | None, st
     except Exception as exc:
         log.debug("frame %d: %s raised", frame, stage, exc_info=True)
         return None, exception_failure(stage, exc)
+
+
+def measure_frames(
+    seq: FrameSequence,
+    stage: str,
+    process: Callable[[Frame], FrameMeasurements],
+    bad: BadFrames,
+) -> list[FrameMeasurements]:
+    """Every frame of ``seq`` through ``process`` (a frontend's ``process_frame``) with a
+    progress bar: an exception is that frame's failure note (`guarded`, named ``stage``), and
+    each bad frame is named on the console with its image files (``bad``)."""
+    import sys
+
+    from tqdm import tqdm
+
+    results = []
+    for frame in tqdm(
+        seq,
+        desc=f"{stage} {seq.name}",
+        unit="frame",
+        file=sys.stderr,
+        dynamic_ncols=True,
+        delay=0.5,
+    ):
+        m, why = guarded(stage, frame.index, partial(process, frame))
+        if m is None:
+            m = FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(str(why),))
+        files = tuple(p for p in (frame.left_path, frame.right_path) if p is not None)
+        bad.note(frame.index, m.failures, files)
+        results.append(m)
+    return results
 
 
 class BadFrames:

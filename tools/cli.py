@@ -251,15 +251,11 @@ def run_frontend_on(
     staging folder renamed to ``out`` at the end (an existing frontend output folder is
     replaced only with ``overwrite``). A frame that raises is that frame's failure; bad
     frames are named as warnings and counted in the summary line."""
-    from functools import partial
-
-    from tqdm import tqdm
 
     from satpose.datasets.config import load_config, to_plain
     from satpose.datasets.sequence import load_sequence
-    from satpose.frontend.measurements import FrameMeasurements
     from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
-    from satpose.tools.badframes import BadFrames, guarded
+    from satpose.tools.badframes import BadFrames, measure_frames
     from satpose.tools.files import atomic_write, staged_output, write_measurements, write_tum
 
     seq = load_sequence(sequence_path)
@@ -271,20 +267,7 @@ def run_frontend_on(
     with staged_output(out, overwrite, marker="measurements.parquet", what="a frontend") as stage:
         frontend = StereoFrontend(seq.calibration, config)
         bad = BadFrames(seq.root)
-        results = []
-        for frame in tqdm(
-            seq,
-            desc=f"frontend {seq.name}",
-            unit="frame",
-            file=sys.stderr,
-            dynamic_ncols=True,
-            delay=0.5,
-        ):
-            m, why = guarded("frontend", frame.index, partial(frontend.process_frame, frame))
-            if m is None:
-                m = FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(str(why),))
-            bad.note(frame.index, m.failures, (frame.left_path, frame.right_path))
-            results.append(m)
+        results = measure_frames(seq, "frontend", frontend.process_frame, bad)
         write_measurements(results, stage / "measurements.parquet")
         with_pose = [m for m in results if m.pose is not None]
         write_tum(

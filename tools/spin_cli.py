@@ -27,7 +27,6 @@ import argparse
 import csv
 import io
 import math
-import sys
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -107,15 +106,11 @@ def run_spin_on(
     and a summary (accepted, ambiguous, refused by kind, the first reasons) and writes the
     result files (see the module docstring). ``max_rate_deg_s`` overrides the config's."""
     from dataclasses import replace
-    from functools import partial
-
-    from tqdm import tqdm
 
     from satpose.datasets.config import load_config, to_plain
     from satpose.datasets.sequence import load_sequence
-    from satpose.frontend.measurements import FrameMeasurements
     from satpose.frontend.spin import SpinConfig, SpinFrontend
-    from satpose.tools.badframes import BadFrames, guarded
+    from satpose.tools.badframes import BadFrames, measure_frames
     from satpose.tools.files import atomic_write, staged_output, write_measurements
 
     seq = load_sequence(sequence_path)
@@ -137,21 +132,8 @@ def run_spin_on(
     steps: list[SpinStep] = []
     frontend = SpinFrontend(seq.calibration.left, config, hook=steps.append)
     bad = BadFrames(seq.root)
-    results: list[FrameMeasurements] = []
     with staged_output(out, overwrite, marker="spin.csv", what="a spin") as stage:
-        for frame in tqdm(
-            seq,
-            desc=f"spin {seq.name}",
-            unit="frame",
-            file=sys.stderr,
-            dynamic_ncols=True,
-            delay=0.5,
-        ):
-            m, why = guarded("spin", frame.index, partial(frontend.process_frame, frame))
-            if m is None:
-                m = FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(str(why),))
-            bad.note(frame.index, m.failures, (frame.left_path,))
-            results.append(m)
+        results = measure_frames(seq, "spin", frontend.process_frame, bad)
         names = ["spin.csv", "spin_angles.csv", "measurements.parquet", "config.yaml", "spin.png"]
         atomic_write(stage / "spin.csv", lambda tmp: Path(tmp).write_text(spin_csv(steps)))
         atomic_write(stage / "spin_angles.csv", lambda tmp: Path(tmp).write_text(angles_csv(steps)))
