@@ -29,6 +29,7 @@ import csv
 import logging
 import math
 import shutil
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -319,7 +320,27 @@ def run_bracket(
                     summary[name] = float(np.sqrt(np.mean(v**2)) * unit)
         if bad.count:
             summary["bad_frames"] = bad.summary(len(seq.frames))
+        refused = refusal_summary(frames)
+        if refused:
+            summary["refused"] = refused
     return summary
+
+
+def refusal_summary(frames: list[FrameMeasurements], first: int = 3) -> str:
+    """``"N of M frames without a pose: <reason> (count), ..."`` for the frames whose bracket
+    pose was refused, the ``first`` most frequent reasons named (the text before the
+    reason's details), or "" when every frame has a pose. Each frame's full reason is in
+    points.csv."""
+    kinds = Counter(
+        m.failures[0].removeprefix("bracket: ").split(":")[0].strip() if m.failures else "no pose"
+        for m in frames
+        if m.pose is None
+    )
+    if not kinds:
+        return ""
+    named = ", ".join(f"{k} ({n})" for k, n in kinds.most_common(first))
+    more = f", {len(kinds) - first} other reasons" if len(kinds) > first else ""
+    return f"{sum(kinds.values())} of {len(frames)} frames without a pose: {named}{more}"
 
 
 def _handler(args: argparse.Namespace) -> None:
@@ -333,9 +354,12 @@ def _handler(args: argparse.Namespace) -> None:
         angular_noise=args.angular_noise,
         linear_noise=args.linear_noise,
     )
+    refused = summary.pop("refused", "")
     print(
         " ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in summary.items())
     )
+    if refused:
+        print(f"refused: {refused} (each frame's reason: {args.out}/points.csv)")
 
 
 def register(subparsers: Any) -> None:

@@ -62,6 +62,7 @@ def test_bracket_cli_survives_an_unreadable_frame_and_a_failing_stage(
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
     caplog: pytest.LogCaptureFixture,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
     """An unreadable image and an exception inside the detection are frame failures (a
     reason in points.csv, a warning naming the file), not the end of the run."""
@@ -79,6 +80,8 @@ def test_bracket_cli_survives_an_unreadable_frame_and_a_failing_stage(
         rows = list(csv.DictReader(fh))
     assert "not a readable PNG" in rows[1]["reason"]
     assert any("left/000001.png" in r.getMessage() for r in caplog.records)
+    # the console says how many frames have no pose, and why
+    assert "refused: 1 of 2 frames without a pose: image (1)" in capsys.readouterr().out
 
     def broken(*args: object, **kwargs: object) -> object:
         raise ValueError("boom")
@@ -93,3 +96,25 @@ def test_bracket_cli_survives_an_unreadable_frame_and_a_failing_stage(
         == 2
     )
     assert not (tmp_path / "b").exists()
+
+
+def test_refusal_summary_counts_reasons() -> None:
+    from satpose.frontend.measurements import FrameMeasurements
+    from satpose.tools.bracket import refusal_summary
+
+    def refused(k: int, why: str) -> FrameMeasurements:
+        return FrameMeasurements(frame=k, t_s=float(k), failures=(why,))
+
+    frames = [
+        refused(0, "bracket: labelling ambiguous: the best labelling's yoke ratio ..."),
+        refused(1, "bracket: labelling ambiguous: the best ..."),
+        refused(2, "bracket: no strut triple"),
+        refused(3, "image: left/000003.png: not a readable PNG file"),
+        refused(4, "bracket: a"),
+        refused(5, "bracket: b"),
+    ]
+    assert refusal_summary(frames) == (
+        "6 of 6 frames without a pose: labelling ambiguous (2), no strut triple (1), "
+        "image (1), 2 other reasons"
+    )
+    assert refusal_summary([]) == ""
