@@ -340,10 +340,11 @@ def plot_spin(
         tt = np.linspace(last.window_start_s, last.window_end_s, 2000)
         ax.plot(tt, _unjoined(np.degrees(last.angle(tt))), "-", lw=0.8, color="C1", label="fit")
         ax.plot(t[inside], theta[inside], "o", ms=5, color="C0", label="theta'")
-        rate = math.degrees(last.rate_rad_s)
+        rates = last.candidates_rad_s if last.candidates_rad_s else (last.rate_rad_s,)
+        shown = " or ".join(f"{math.degrees(r):.4f}" for r in rates)
         ax.set_title(
             f"last window ({last.window_start_s:g}-{last.window_end_s:g} s): "
-            f"{rate:.4f} deg/s, {last.status.value}"
+            f"{shown} deg/s, {last.status.value}"
         )
         ax.legend(loc="upper right", fontsize=8)
     ax.set(xlabel="t [s]", ylabel="theta' [deg]", ylim=(-5, 185))
