@@ -55,6 +55,33 @@ class TrackResult:
     bad_frames: BadFrames = field(default_factory=BadFrames)  # frames pipeline only
 
 
+def measured_coverage(res: TrackResult) -> tuple[int, float, float]:
+    """How much of the recording the frontend measured (not what the smoother filled):
+    ``(outputs with a measured attitude, fraction of the time they cover, duration [s])``.
+    Output ``i`` covers the time since the previous output (the first: one median output
+    period); a lost output's stretch is uncovered even though the smoothed attitude spans it."""
+    t = np.array([s.t_s for s in res.solutions], float)
+    if t.size == 0:
+        return 0, 0.0, 0.0
+    measured = np.array([s.R is not None for s in res.solutions])
+    period = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    stretch = np.diff(t, prepend=t[0] - period)
+    duration = float(stretch.sum())
+    frac = float(stretch[measured].sum() / duration) if duration > 0 else float(measured.all())
+    return int(measured.sum()), frac, duration
+
+
+def coverage_line(res: TrackResult) -> str:
+    """The console's summary of `measured_coverage` and of what the smoother filled."""
+    n, frac, duration = measured_coverage(res)
+    smoothed = int(np.isfinite(res.R[:, 0, 0]).sum())
+    return (
+        f"attitude measured in {n}/{len(res.solutions)} outputs, {100 * frac:.1f} % of the "
+        f"{duration:.3f} s recording; smoothed attitude at {smoothed}/{len(res.t_s)} outputs "
+        f"({smoothed - n} filled by the smoother)"
+    )
+
+
 def windows_from_solutions(sols: list[AttitudeSolution], sigma_rad: float) -> list[Any]:
     """Rotation-graph windows: absolute attitudes and rotation-only relative rotations from the
     stars two consecutive windows share.
@@ -348,8 +375,7 @@ def _cmd_track(args: argparse.Namespace) -> None:
         _write_outputs(res, tmp, args.sequence, meta)
         if args.rerun:
             write_recording(res, args.sequence, tmp / "stars.rrd")
-    n_ok = int(np.isfinite(res.R[:, 0, 0]).sum())
-    print(f"{n_ok}/{len(res.t_s)} windows with an attitude; wrote {out}")
+    print(f"{coverage_line(res)}; wrote {out}")
     if res.bad_frames.count:
         print(res.bad_frames.summary(len(res.t_s)))
 

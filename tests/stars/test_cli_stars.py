@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from satpose.tools.cli import main
 
@@ -38,3 +39,32 @@ def test_render_and_track(tmp_path: Path, capsys) -> None:  # type: ignore[no-un
     assert main(["stars", "track", str(seq), "--out", str(tmp_path / "x")]) == 2
     assert "events.h5" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_coverage_counts_time_measured_not_what_the_smoother_filled() -> None:
+    """Outputs every 5 ms, two lost: the frontend measured 8 of 10 outputs = 80 % of the
+    50 ms; the smoother has an attitude at all 10, and the summary says it filled 2."""
+    from satpose.frontend.stars import AttitudeSolution
+    from satpose.tools.stars import TrackResult, coverage_line, measured_coverage
+
+    t = 0.005 * np.arange(1, 11)
+    sols = [
+        AttitudeSolution(
+            t_s=float(tk),
+            R=None if k in (3, 4) else np.eye(3),
+            cov=None,
+            status="lost" if k in (3, 4) else "tracking",
+        )
+        for k, tk in enumerate(t)
+    ]
+    res = TrackResult(
+        solutions=sols,
+        t_s=t,
+        R=np.tile(np.eye(3), (10, 1, 1)),
+        cov=np.zeros((10, 3, 3)),
+        estimator="offline",
+    )
+    n, frac, duration = measured_coverage(res)
+    assert n == 8 and frac == pytest.approx(0.8) and duration == pytest.approx(0.05)
+    assert "8/10 outputs, 80.0 % of the 0.050 s" in coverage_line(res)
+    assert "(2 filled by the smoother)" in coverage_line(res)
