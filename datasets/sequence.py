@@ -424,6 +424,15 @@ def _read_camera(raw: Any, path: Path, name: str) -> PinholeCamera:
         raise SequenceError(path, field_name, str(exc)) from None
 
 
+def load_calibration(path: str | Path, kind: str = "mono") -> Calibration:
+    """calib.yaml on its own (an event-only recording has no frames to load a sequence by).
+
+    Raises:
+        SequenceError: naming the file and field.
+    """
+    return _read_calibration(Path(path), kind)
+
+
 def _read_calibration(path: Path, kind: str) -> Calibration:
     data = _read_yaml(path, required=True)
     cams = data.get("cameras")

@@ -20,10 +20,11 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.config import to_plain
 from satpose.datasets.errors import SatposeError, SequenceError
 from satpose.datasets.geometry import matrix_to_quat_xyzw, matrix_to_rotvec
-from satpose.datasets.sequence import load_sequence
+from satpose.datasets.sequence import Frame, load_calibration, load_sequence
 from satpose.frontend.stars import (
     ARCSEC,
     AttitudeSolution,
@@ -53,6 +54,30 @@ class TrackResult:
     cov: np.ndarray
     estimator: str
     bad_frames: BadFrames = field(default_factory=BadFrames)  # frames pipeline only
+
+
+def open_star_sequence(
+    seq_dir: Path, pipeline: Pipeline
+) -> tuple[PinholeCamera, tuple[Frame, ...]]:
+    """The sensor and the frames of a star sequence folder. An event-only recording (no
+    frames.csv: sequence.yaml, calib.yaml, events.h5) has no frames; the frames pipeline
+    then has nothing to track and says so.
+
+    Raises:
+        SequenceError: naming the file and field.
+    """
+    root = Path(seq_dir)
+    if (root / "frames.csv").is_file() or not root.is_dir():
+        seq = load_sequence(root)
+        return seq.calibration.left, seq.frames
+    if pipeline == "frames":
+        raise SequenceError(
+            root / "frames.csv",
+            None,
+            "required file is missing: the frames pipeline needs frames (an event-only "
+            "recording runs with --pipeline events)",
+        )
+    return load_calibration(root / "calib.yaml").left, ()
 
 
 def measured_coverage(res: TrackResult) -> tuple[int, float, float]:
@@ -138,8 +163,7 @@ def track_sequence(
     from satpose.datasets.event_io import read_events
     from satpose.datasets.star_scenarios import EVENTS_FILE
 
-    seq = load_sequence(seq_dir)
-    cam = seq.calibration.left
+    cam, frames = open_star_sequence(seq_dir, pipeline)
     tracker = StarTracker(cam, config)
     if pipeline == "events":
         ev = read_events(seq_dir / EVENTS_FILE)
@@ -147,10 +171,10 @@ def track_sequence(
             raise SequenceError(seq_dir / EVENTS_FILE, "events", "no events")
         t1 = ev.t_s[-1] if duration_s is None else min(duration_s, ev.t_s[-1])
         sols = run_event_tracker(tracker, ev, 0.0, float(t1))
-    bad = BadFrames(seq.root)
+    bad = BadFrames(Path(seq_dir))
     if pipeline != "events":
         sols = []
-        for fr in seq.frames:
+        for fr in frames:
             if duration_s is not None and fr.t_s > duration_s:
                 break
             try:
@@ -258,8 +282,7 @@ def write_recording(
     )
     from satpose.frontend.stars import solver_catalogue
 
-    seq = load_sequence(seq_dir)
-    cam = seq.calibration.left
+    cam, frames = open_star_sequence(seq_dir, "events")
     rec = rr.RecordingStream(application_id="satpose-stars", recording_id=None)
     rec.save(str(path))
     rec.log(
@@ -267,7 +290,7 @@ def write_recording(
         rr.Pinhole(image_from_camera=cam.K, resolution=[cam.width, cam.height]),
         static=True,
     )
-    for fr in seq.frames:
+    for fr in frames:
         rec.set_time("time", duration=float(fr.t_s))
         img = fr.image("left").astype(np.float64)
         lo, hi = np.percentile(img, [1.0, 99.9])

@@ -68,3 +68,30 @@ def test_coverage_counts_time_measured_not_what_the_smoother_filled() -> None:
     assert n == 8 and frac == pytest.approx(0.8) and duration == pytest.approx(0.05)
     assert "8/10 outputs, 80.0 % of the 0.050 s" in coverage_line(res)
     assert "(2 filled by the smoother)" in coverage_line(res)
+
+
+def test_event_only_recording_is_tracked(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A recording with events and no frames (no frames.csv, images or groundtruth.csv) is
+    tracked by the events pipeline; the frames pipeline refuses it in one line naming
+    frames.csv."""
+    import shutil
+
+    seq = tmp_path / "slew"
+    assert main(["stars", "render", "slew", "--out", str(seq), "--duration", "0.2"]) == 0
+    for name in ("frames.csv", "groundtruth.csv"):
+        (seq / name).unlink()
+    shutil.rmtree(seq / "left")
+    capsys.readouterr()
+    out = tmp_path / "trk"
+    assert main(["stars", "track", str(seq), "--out", str(out), "--rerun"]) == 0
+    assert "attitude measured in" in capsys.readouterr().out
+    df = pd.read_csv(out / "windows.csv")
+    assert (df["status"] == "tracking").mean() >= 0.7
+    assert np.nanmax(np.abs(df[["err_x_arcsec", "err_y_arcsec"]].to_numpy())) < 60.0
+    assert (
+        main(["stars", "track", str(seq), "--out", str(tmp_path / "f"), "--pipeline", "frames"])
+        == 2
+    )
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "frames.csv" in err and "--pipeline events" in err
+    assert not (tmp_path / "f").exists()
