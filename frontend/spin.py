@@ -859,7 +859,7 @@ MODEL_PARAMETERS = {"two-sine": 9, "projection": 4}
 not change the angle."""
 
 
-def _refused(
+def _window_fit(
     status: SpinStatus,
     reason: str,
     t0: float,
@@ -870,6 +870,7 @@ def _refused(
     sigma: float = math.nan,
     **extra: object,
 ) -> SpinFit:
+    """One window's answer, whatever its status (``extra``: the fitted model's fields)."""
     return SpinFit(
         status=status,
         reason=reason,
@@ -1009,7 +1010,7 @@ def estimate_spin_rate(
     else:
         dt = float(np.median(np.diff(t))) if m > 1 else math.nan
     if m < cfg.min_samples:
-        return _refused(
+        return _window_fit(
             SpinStatus.TOO_FEW_SAMPLES,
             f"{m} usable frames in the window, {cfg.min_samples} needed",
             t0,
@@ -1029,7 +1030,7 @@ def estimate_spin_rate(
     R = float(abs(z.mean()))
     spread = 0.5 * math.sqrt(-2.0 * math.log(R)) if 0 < R < 1 else (0.0 if R >= 1 else math.inf)
     if math.degrees(spread) < cfg.min_spread_deg:
-        return _refused(
+        return _window_fit(
             SpinStatus.GEOMETRY,
             f"theta' hardly changes (spread {math.degrees(spread):.1f} deg < "
             f"{cfg.min_spread_deg:g}): the target is not spinning, or spins about its long "
@@ -1051,7 +1052,7 @@ def estimate_spin_rate(
     spectral = 0.5 * b_peak
     b_lo = 2.0 * math.pi * cfg.min_periods / span
     if b_peak < b_lo:
-        return _refused(
+        return _window_fit(
             SpinStatus.TOO_SLOW,
             f"theta' turns fewer than {cfg.min_periods:g} times in the {span:g} s window (about "
             f"{math.degrees(spectral):.1f} deg/s, minimum {math.degrees(0.5 * b_lo):.1f}): use "
@@ -1078,7 +1079,7 @@ def estimate_spin_rate(
     }
 
     def refuse(status: SpinStatus, reason: str) -> SpinFit:
-        return _refused(status, reason, t0, t1, m, dt, rate, sigma, **fitted)
+        return _window_fit(status, reason, t0, t1, m, dt, rate, sigma, **fitted)
 
     if primary.refusal is not None:
         return refuse(*primary.refusal)
@@ -1147,31 +1148,22 @@ def _resolve_fold(
     f_hz = 1.0 / dt
 
     def ok(r: float) -> SpinFit:
-        return SpinFit(
-            status=SpinStatus.OK,
-            reason="",
-            rate_rad_s=r,
-            sigma_rad_s=sigma,
-            window_start_s=t0,
-            window_end_s=t1,
-            samples=m,
-            frame_interval_s=dt,
-            **fitted,  # type: ignore[arg-type]
-        )
+        return _window_fit(SpinStatus.OK, "", t0, t1, m, dt, r, sigma, **fitted)
 
     def ambiguous(cands: list[float], why: str) -> SpinFit:
         listed = " or ".join(f"{math.degrees(c):.2f}" for c in cands)
-        return SpinFit(
-            status=SpinStatus.AMBIGUOUS,
-            reason=f"{listed} deg/s fit equally well: {why}",
-            rate_rad_s=math.nan,
-            sigma_rad_s=sigma,
-            window_start_s=t0,
-            window_end_s=t1,
-            samples=m,
-            frame_interval_s=dt,
+        reason = f"{listed} deg/s fit equally well: {why}"
+        return _window_fit(
+            SpinStatus.AMBIGUOUS,
+            reason,
+            t0,
+            t1,
+            m,
+            dt,
+            math.nan,
+            sigma,
             candidates_rad_s=tuple(cands),
-            **fitted,  # type: ignore[arg-type]
+            **fitted,
         )
 
     if vote is None or not vote.verdict:
