@@ -74,6 +74,17 @@ def guarded(stage: str, frame: int, step: Callable[[], T]) -> tuple[T | None, st
         return None, exception_failure(stage, exc)
 
 
+def measure_frame(
+    stage: str, frame: Frame, process: Callable[[Frame], FrameMeasurements]
+) -> FrameMeasurements:
+    """``process(frame)``, or a frame whose one failure note is the exception it raised
+    (`guarded`, named ``stage``)."""
+    m, why = guarded(stage, frame.index, partial(process, frame))
+    if m is None:
+        m = FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(str(why),))
+    return m
+
+
 def measure_frames(
     seq: FrameSequence,
     stage: str,
@@ -96,9 +107,7 @@ def measure_frames(
         dynamic_ncols=True,
         delay=0.5,
     ):
-        m, why = guarded(stage, frame.index, partial(process, frame))
-        if m is None:
-            m = FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(str(why),))
+        m = measure_frame(stage, frame, process)
         files = tuple(p for p in (frame.left_path, frame.right_path) if p is not None)
         bad.note(frame.index, m.failures, files)
         results.append(m)

@@ -49,7 +49,7 @@ from satpose.datasets.geometry import Rigid3
 from satpose.datasets.sequence import Sequence, load_sequence
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
 from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
-from satpose.tools.badframes import BadFrames, guarded
+from satpose.tools.badframes import BadFrames, guarded, measure_frame
 from satpose.tools.files import atomic_write, staged_output, write_measurements, write_tum
 from satpose.tools.recording import RecordingConfig, RunRecorder
 
@@ -296,9 +296,7 @@ def _run(
     try:
         for k, frame in enumerate(seq):
             t0 = time.perf_counter()
-            m, why = guarded("frontend", frame.index, partial(frontend.process_frame, frame))
-            if m is None:
-                m = FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(str(why),))
+            m = measure_frame("frontend", frame, frontend.process_frame)
             t1 = time.perf_counter()
             row: dict[str, Any] = {
                 "frame": frame.index,
