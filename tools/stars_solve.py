@@ -39,6 +39,7 @@ from satpose.frontend.star_images import (
     no_solution,
     radec_roll_deg,
     solve_image,
+    to_gray,
 )
 from satpose.frontend.stars import ARCSEC, StarTrackerError
 
@@ -124,9 +125,7 @@ def solution_row(image: str, sol: StarSolution) -> dict[str, Any]:
 
 def stretch_8bit(image: np.ndarray) -> np.ndarray:
     """A gray 8-bit view of a sky image: 1st to 99.8th percentile, square-root stretch."""
-    img = np.asarray(image, dtype=np.float32)
-    if img.ndim == 3:
-        img = img[:, :, :3].mean(axis=2)
+    img = to_gray(image).astype(np.float32)  # the gray the extraction sees
     lo, hi = np.percentile(img[::4, ::4], [1.0, 99.8])
     v = np.clip((img - lo) / max(float(hi - lo), 1e-6), 0, 1)
     return (np.sqrt(v) * 255).astype(np.uint8)
