@@ -19,7 +19,18 @@ Tightly coupled (``coupling = "tight"``):
   and normal and ``B`` (3x2) a tangent basis of ``n``. The target origin is the ring centre and
   its z axis the ring normal, so this factor also fixes five of the six gauge freedoms.
   Covariance: the frontend's covariance of ``[centre, normal]`` with the normal block projected
-  on ``B``.
+  on ``B``. With ``MeasurementConfig.ring_disparity_bias_px`` the measured centre is modelled
+  as biased by a disparity error ``beta`` [px] common to all frames (the variable
+  ``DISPARITY_BIAS``, zero-mean prior of that standard deviation): a disparity error
+  ``beta`` (> 0: the disparity measured too small) moves the centre away from the cameras
+  along its line of sight by ``|c|^2 beta / (f b)`` (focal length
+  ``f`` [px], baseline ``b``), so ``e = [t - c + u |c|^2 beta / (f b) ; B^T R e_z]`` with ``u =
+  c / |c|``, and the radius, fitted at that depth from the ellipses' sizes, by the factor
+  ``1 + |c| beta / (f b)`` (`ring_radius_factor`). The edges of a rim are seen differently
+  by the two cameras (its wall, a shadow's sliver, a glint; docs/frontend.md), a bias that
+  the smoother cannot average away; with the variable its uncertainty is in every frame's
+  covariance, and the radius shared over a changing range and the landmarks of a turning
+  target make it observable.
 - `ring_radius_factor` (Python): the measured radius ``r`` against the radius variable
   ``rho = R(k)`` of the circle it belongs to, *conditioned* on the centre and normal residual:
   ``e = (rho - r) - K^T e_cn`` with ``K = C_cn^-1 C_cn,r`` and variance
@@ -61,7 +72,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from satpose.backend.errors import BackendError
-from satpose.backend.keys import L, R, V, X
+from satpose.backend.keys import DISPARITY_BIAS, L, R, V, X
 from satpose.backend.pose3 import (
     ROT,
     TRANS,
@@ -116,6 +127,11 @@ class MeasurementConfig:
             the x axis (same rule as the frontend's ``PoseConfig.min_axis_distance_m``).
         gauge_sigma_m: standard deviation of the anchor's ``y = 0`` constraint [m]
             (effectively hard).
+        ring_disparity_bias_px: standard deviation [px] of the ring edges' disparity bias
+            common to all frames (tight only; None: no such variable, each frame's ring is
+            independent). 0.2 px: on the random family's tuning seeds the per-sequence
+            depth biases of the ring correspond to 0.06-0.29 px of disparity
+            (docs/results/ring_wall_tuning.md).
         spin_rate: turn accepted spin-rate measurements (`FrameMeasurements.spin`) into
             factors on ``|omega|``. Only windows disjoint from the last one used are taken:
             consecutive sliding windows share all but one frame, and as independent factors
@@ -136,6 +152,7 @@ class MeasurementConfig:
     ring_circle_gap: float = 0.04
     max_orb_per_frame: int | None = 20
     spin_rate: bool = True
+    ring_disparity_bias_px: float | None = 0.2
 
     def __post_init__(self) -> None:
         if self.coupling not in ("loose", "tight"):
@@ -148,6 +165,9 @@ class MeasurementConfig:
             raise BackendError("gauge_sigma_m must be positive, anchor distance non-negative")
         if not 0 < self.ring_circle_gap < 1:
             raise BackendError(f"ring_circle_gap must be in (0, 1), got {self.ring_circle_gap}")
+        b = self.ring_disparity_bias_px
+        if b is not None and not (math.isfinite(b) and b > 0):
+            raise BackendError(f"ring_disparity_bias_px must be > 0 or null, got {b}")
         if self.max_orb_per_frame is not None and self.max_orb_per_frame < 0:
             raise BackendError(f"max_orb_per_frame must be >= 0, got {self.max_orb_per_frame}")
         object.__setattr__(
@@ -265,23 +285,39 @@ def _centre_normal(
 
 
 def ring_factor(
-    m: RingMeasurement, i: int, config: MeasurementConfig, clock: FactorClock | None = None
+    m: RingMeasurement,
+    i: int,
+    config: MeasurementConfig,
+    clock: FactorClock | None = None,
+    focal_baseline: float | None = None,
 ) -> gtsam.CustomFactor:
-    """The ring's centre and normal at state ``i`` (see the module docstring)."""
+    """The ring's centre and normal at state ``i`` (see the module docstring).
+
+    Args:
+        focal_baseline: ``f b`` [px m] of the rig: the factor then also acts on the common
+            disparity bias ``DISPARITY_BIAS``."""
     c = np.asarray(m.center_m, float)
     B = tangent_basis(m.normal)
+    # centre shift per pixel of disparity bias (along the line of sight) [m/px]
+    dc = None if focal_baseline is None else c * float(np.linalg.norm(c)) / focal_baseline
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
         t0 = clock.start() if clock is not None else 0.0
-        e, Hx = _centre_normal(values.atPose3(this.keys()[0]), c, B, H is not None)
+        ks = this.keys()
+        e, Hx = _centre_normal(values.atPose3(ks[0]), c, B, H is not None)
+        if dc is not None:
+            e[0:3] += dc * values.atVector(ks[1])[0]
         if H is not None:
             H[0] = np.asfortranarray(Hx)
+            if dc is not None:
+                H[1] = np.asfortranarray(np.r_[dc, 0.0, 0.0][:, None])
         if clock is not None:
             clock.stop(t0)
         return e
 
     noise = robust(gaussian(ring_covariance(m, with_radius=False)), 5, config)
-    return gtsam.CustomFactor(noise, [X(i)], error)
+    keys = [X(i)] if dc is None else [X(i), DISPARITY_BIAS]
+    return gtsam.CustomFactor(noise, keys, error)
 
 
 def ring_radius_factor(
@@ -290,10 +326,12 @@ def ring_radius_factor(
     circle: int,
     config: MeasurementConfig,
     clock: FactorClock | None = None,
+    focal_baseline: float | None = None,
 ) -> gtsam.CustomFactor:
     """The ring's radius at state ``i`` against the radius variable ``R(circle)``, conditioned
     on the centre and normal (see the module docstring): ``e = (rho - r) - K^T e_cn``,
-    ``de/dX = -K^T de_cn/dX``, ``de/drho = 1``."""
+    ``de/dX = -K^T de_cn/dX``, ``de/drho = 1``; with ``focal_baseline`` the measured radius
+    is ``rho (1 + |c| beta / (f b))`` and ``e_cn`` includes the bias as in `ring_factor`."""
     c = np.asarray(m.center_m, float)
     B = tangent_basis(m.normal)
     r = float(m.radius_m)
@@ -303,22 +341,36 @@ def ring_radius_factor(
     if not variance > 0:
         raise BackendError("ring covariance: the radius is determined by the centre and normal")
     H_rho = np.asfortranarray(np.ones((1, 1)))
+    depth = float(np.linalg.norm(c))
+    dc = None if focal_baseline is None else c * depth / focal_baseline
+    dr = None if focal_baseline is None else depth / focal_baseline  # relative, per px
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
         t0 = clock.start() if clock is not None else 0.0
         ks = this.keys()
         e_cn, Hx = _centre_normal(values.atPose3(ks[0]), c, B, H is not None)
-        e = np.array([values.atVector(ks[1])[0] - r - K @ e_cn])
+        rho = values.atVector(ks[1])[0]
+        if dc is None or dr is None:
+            e = np.array([rho - r - K @ e_cn])
+        else:
+            beta = values.atVector(ks[2])[0]
+            e_cn[0:3] += dc * beta
+            e = np.array([rho * (1 + dr * beta) - r - K @ e_cn])
         if H is not None:
             assert Hx is not None
             H[0] = np.asfortranarray(-(K @ Hx)[None, :])
-            H[1] = H_rho
+            if dc is None or dr is None:
+                H[1] = H_rho
+            else:
+                H[1] = np.asfortranarray(np.full((1, 1), 1 + dr * beta))
+                H[2] = np.asfortranarray(np.full((1, 1), rho * dr - float(K[0:3] @ dc)))
         if clock is not None:
             clock.stop(t0)
         return e
 
     noise = robust(gtsam.noiseModel.Isotropic.Sigma(1, math.sqrt(variance)), 1, config)
-    return gtsam.CustomFactor(noise, [X(i), R(circle)], error)
+    keys = [X(i), R(circle)] if dc is None else [X(i), R(circle), DISPARITY_BIAS]
+    return gtsam.CustomFactor(noise, keys, error)
 
 
 def landmark_factors(

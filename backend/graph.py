@@ -39,7 +39,7 @@ from satpose.backend.factors import (
     ring_radius_factor,
     spin_rate_factor,
 )
-from satpose.backend.keys import L, R, V, X
+from satpose.backend.keys import DISPARITY_BIAS, L, R, V, X
 from satpose.backend.motion import (
     MotionConfig,
     constant_twist_factor,
@@ -94,6 +94,7 @@ class GraphBuilder:
         self._first_sightings: dict[int, tuple[int, LandmarkMeasurement]] = {}
         self._sightings: dict[int, int] = {}  # sightings of the landmarks in the graph
         self.circles: list[list[float]] = []  # the radii measured of each circle of the ring
+        self._bias_in_graph = False  # DISPARITY_BIAS and its prior added
         self.full_frames = 0  # frames whose measurements fix a whole pose
         self._pending: list[FrameMeasurements] = []
         self._spin_until_s = -np.inf  # end of the last spin-rate window used
@@ -252,6 +253,23 @@ class GraphBuilder:
         seen = self._sightings.get(lm.track_id, int(lm.track_id in self._first_sightings))
         return (lm.track_id != self.anchor, KIND_PRIORITY[lm.kind], -seen, lm.track_id)
 
+    def _disparity_bias(self, update: GraphUpdate) -> float | None:
+        """``f b`` of the rig if the ring factors carry the common disparity bias (the
+        variable and its prior enter with the first ring), else None."""
+        sigma = self.config.ring_disparity_bias_px
+        if sigma is None or self.rig.left_from_right is None:
+            return None
+        if not self._bias_in_graph:
+            update.values.insert(DISPARITY_BIAS, np.zeros(1))
+            update.factors.push_back(
+                gtsam.PriorFactorVector(
+                    DISPARITY_BIAS, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, sigma)
+                )
+            )
+            self._bias_in_graph = True
+        baseline = float(np.linalg.norm(self.rig.left_from_right.translation()))
+        return float(self.rig.cal_left.fx()) * baseline
+
     def _circle(self, radius_m: float) -> int:
         """The circle of the ring a measured radius belongs to: the known circle whose median
         radius is nearest, if within ``ring_circle_gap`` (relative); else a new one
@@ -282,7 +300,8 @@ class GraphBuilder:
             return
         observed = 0
         if m.ring is not None:
-            update.factors.push_back(ring_factor(m.ring, i, self.config, self.clock))
+            fb = self._disparity_bias(update)
+            update.factors.push_back(ring_factor(m.ring, i, self.config, self.clock, fb))
             if self.config.ring_radius:
                 k = self._circle(m.ring.radius_m)
                 if k == len(self.circles):
@@ -293,7 +312,9 @@ class GraphBuilder:
                             f"ring: another circle of the rim, radius {m.ring.radius_m:.4f} m"
                         )
                 self.circles[k].append(float(m.ring.radius_m))
-                update.factors.push_back(ring_radius_factor(m.ring, i, k, self.config, self.clock))
+                update.factors.push_back(
+                    ring_radius_factor(m.ring, i, k, self.config, self.clock, fb)
+                )
         orb_left = self.config.max_orb_per_frame
         for lm in sorted(m.landmarks, key=self._landmark_priority):
             if lm.kind not in self.config.landmark_kinds:

@@ -7,6 +7,10 @@
 - ``R(k)``: the radius (1-vector) [m] of the ``k``-th circle of the docking ring the frontend
   has measured, shared by every frame that measured that circle (the rim's outer and inner
   front edges are concentric circles of different radii; the frontend may track either).
+- ``DISPARITY_BIAS``: a disparity error [px] of the ring's edges common to every frame (1-vector):
+  the two cameras see the rim's edge profile differently (a wall, a shadow's sliver, a glint
+  seen from two viewpoints), a bias that averaging over frames does not remove
+  (`satpose.backend.factors.ring_factor`).
 """
 
 from __future__ import annotations
@@ -14,13 +18,28 @@ from __future__ import annotations
 import gtsam
 from gtsam.symbol_shorthand import L, R, V, X
 
-__all__ = ["LANDMARK_CHAR", "POSE_CHAR", "RADIUS", "RADIUS_CHAR", "TWIST_CHAR", "L", "R", "V", "X"]
+__all__ = [
+    "BIAS_CHAR",
+    "DISPARITY_BIAS",
+    "LANDMARK_CHAR",
+    "POSE_CHAR",
+    "RADIUS",
+    "RADIUS_CHAR",
+    "TWIST_CHAR",
+    "L",
+    "R",
+    "V",
+    "X",
+]
 
 RADIUS = R(0)
 """The first circle's radius."""
+DISPARITY_BIAS = gtsam.symbol("d", 0)
+"""The ring edges' common disparity bias [px]."""
 
 # The symbol characters (per-type settings such as iSAM2's relinearisation thresholds).
 POSE_CHAR = chr(gtsam.Symbol(X(0)).chr())
 TWIST_CHAR = chr(gtsam.Symbol(V(0)).chr())
 LANDMARK_CHAR = chr(gtsam.Symbol(L(0)).chr())
 RADIUS_CHAR = chr(gtsam.Symbol(RADIUS).chr())
+BIAS_CHAR = chr(gtsam.Symbol(DISPARITY_BIAS).chr())

@@ -36,7 +36,15 @@ from satpose.backend.errors import BackendError
 from satpose.backend.estimate import Estimate, Hook, StepReport
 from satpose.backend.factors import FactorClock, MeasurementConfig
 from satpose.backend.graph import GraphBuilder
-from satpose.backend.keys import LANDMARK_CHAR, POSE_CHAR, RADIUS_CHAR, TWIST_CHAR, V, X
+from satpose.backend.keys import (
+    BIAS_CHAR,
+    LANDMARK_CHAR,
+    POSE_CHAR,
+    RADIUS_CHAR,
+    TWIST_CHAR,
+    V,
+    X,
+)
 from satpose.backend.motion import MotionConfig
 from satpose.backend.offline import estimate_from_values, not_started_message
 from satpose.backend.pose3 import from_state, state_covariance_to_pose, tangent
@@ -69,6 +77,7 @@ class Isam2Config:
         relinearize_radius: threshold for the ring radius [m]. A stale linearisation point
             would give every ring factor a stale robust weight (GTSAM computes it when it
             linearises).
+        relinearize_bias: threshold for the ring edges' common disparity bias [px].
         relinearize_window: during the online loop only the states of the newest this many
             frames (besides the new one) and the landmarks and ring radii that entered the
             graph within this many frames are relinearised at the thresholds above; None:
@@ -95,6 +104,7 @@ class Isam2Config:
     relinearize_twist: float = 1e-4
     relinearize_landmark: float = 1e-3
     relinearize_radius: float = 1e-5
+    relinearize_bias: float = 1e-2
     relinearize_window: int | None = 5
     held_relinearize_factor: float = 10.0
     relinearize_skip: int = 1
@@ -109,6 +119,7 @@ class Isam2Config:
             "relinearize_twist",
             "relinearize_landmark",
             "relinearize_radius",
+            "relinearize_bias",
         ):
             if not getattr(self, name) > 0:
                 raise BackendError(f"online.{name} must be positive")
@@ -161,6 +172,7 @@ class OnlineEstimator:
             (TWIST_CHAR, np.full(6, config.relinearize_twist)),
             (LANDMARK_CHAR, np.full(3, config.relinearize_landmark)),
             (RADIUS_CHAR, np.full(1, config.relinearize_radius)),
+            (BIAS_CHAR, np.full(1, config.relinearize_bias)),
         )
         for char, value in thresholds_by_char:
             thresholds.insert((char, value))
@@ -276,7 +288,7 @@ class OnlineEstimator:
         if window is None:
             return None
         for key in values.keys():
-            if chr(gtsam.Symbol(key).chr()) in (LANDMARK_CHAR, RADIUS_CHAR):
+            if chr(gtsam.Symbol(key).chr()) in (LANDMARK_CHAR, RADIUS_CHAR, BIAS_CHAR):
                 self._entered[key] = newest
         if first:  # the warm-up graph enters at once: nothing to hold yet
             return None

@@ -3,6 +3,8 @@ robust thresholds, and the gauge."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
 import pytest
@@ -20,7 +22,7 @@ from satpose.backend.factors import (
     ring_factor,
     ring_radius_factor,
 )
-from satpose.backend.keys import RADIUS, L, X
+from satpose.backend.keys import DISPARITY_BIAS, RADIUS, L, X
 from satpose.backend.pose3 import exp, to_state
 from satpose.datasets.geometry import Rigid3
 from satpose.datasets.scenarios import preset
@@ -121,6 +123,46 @@ def test_ring_factor_jacobians(jacobians) -> None:  # type: ignore[no-untyped-de
         J, Jn = analytic(f, values), numerical(f, values)
         assert J.shape == shape
         # entries up to ~6 (the camera-to-ring lever arm); central differences exact to ~1e-9
+        assert np.abs(J - Jn).max() < 1e-8 * max(1.0, np.abs(Jn).max())
+
+
+def test_ring_factors_with_the_disparity_bias(jacobians) -> None:  # type: ignore[no-untyped-def]
+    """The ring's common disparity bias: zero bias leaves the factors as without it; a bias
+    beta moves the predicted centre along the line of sight by |c|^2 beta / (f b) and the
+    radius by the factor 1 + |c| beta / (f b); analytic Jacobians match central differences."""
+    analytic, numerical = jacobians
+    fb = 1500.0 * 0.3
+    ring = _ring(T_TRUE)
+
+    def values(T: Rigid3, beta: float, radius: float | None = None) -> gtsam.Values:
+        v = _values(T, radius=radius)
+        v.insert(DISPARITY_BIAS, np.array([beta]))
+        return v
+
+    plain = ring_factor(ring, 0, NO_ROBUST).unwhitenedError(_values(T_TRUE @ OFF))
+    biased = ring_factor(ring, 0, NO_ROBUST, focal_baseline=fb)
+    np.testing.assert_allclose(biased.unwhitenedError(values(T_TRUE @ OFF, 0.0)), plain, atol=1e-12)
+    # the truth seen with a disparity bias beta > 0 (disparity too small): the measured
+    # centre lies beyond the true one along its ray
+    beta = 0.25
+    c = T_TRUE.t
+    shifted = replace(ring, center_m=c + c * np.linalg.norm(c) * beta / fb)
+    f = ring_factor(shifted, 0, NO_ROBUST, focal_baseline=fb)
+    shift = float(np.linalg.norm(c)) ** 2 * beta / fb
+    # exact to first order: the rest is ~2 shift^2 / |c| (the shift evaluated at the
+    # measured rather than the true centre)
+    residual = np.abs(f.unwhitenedError(values(T_TRUE, beta))[:3]).max()
+    assert residual < 2.5 * shift**2 / float(np.linalg.norm(c)) < 0.02 * shift
+    for f, v, shape in (
+        (biased, values(T_TRUE @ OFF, 0.3), (5, 7)),
+        (
+            ring_radius_factor(ring, 0, 0, NO_ROBUST, focal_baseline=fb),
+            values(T_TRUE @ OFF, 0.3, radius=0.31),
+            (1, 8),
+        ),
+    ):
+        J, Jn = analytic(f, v), numerical(f, v)
+        assert J.shape == shape
         assert np.abs(J - Jn).max() < 1e-8 * max(1.0, np.abs(Jn).max())
 
 
