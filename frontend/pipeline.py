@@ -55,6 +55,13 @@ from satpose.frontend.panel import (
 )
 from satpose.frontend.pose import PoseConfig, TargetFrameTracker
 from satpose.frontend.preprocess import PreparedImage, PreprocessConfig, Undistorter
+from satpose.frontend.rim import (
+    RimFit,
+    RimFitConfig,
+    RimImage,
+    fit_outer_rim,
+    projected_observation,
+)
 from satpose.frontend.ring import Detector, RingConfig, RingTracker
 from satpose.frontend.stereo import (
     Circle3D,
@@ -95,6 +102,27 @@ class StereoRingConfig:
     normal_sigma_floor_deg: float = 0.7
     center_sigma_floor_m: float = 0.003
     disparity_sigma_floor_px: float = 0.12
+    known_ring: KnownRing | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class KnownRing:
+    """A ring whose outer front rim radius the user knows (a standard launch-adapter or
+    docking interface): a prior on the 3-D circle's radius in every fit.
+
+    Attributes:
+        outer_radius_m: radius of the outer front rim [m].
+        radius_sigma_m: its standard deviation (manufacturing, thermal) [m].
+    """
+
+    outer_radius_m: float
+    radius_sigma_m: float = 0.001
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.outer_radius_m) and self.outer_radius_m > 0):
+            raise ValueError(f"known_ring.outer_radius_m must be > 0, got {self.outer_radius_m}")
+        if not (math.isfinite(self.radius_sigma_m) and self.radius_sigma_m > 0):
+            raise ValueError(f"known_ring.radius_sigma_m must be > 0, got {self.radius_sigma_m}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -105,6 +133,7 @@ class FrontendConfig:
     ellipses: EllipseDetectorConfig = field(default_factory=EllipseDetectorConfig)
     ring: RingConfig = field(default_factory=RingConfig)
     stereo_ring: StereoRingConfig = field(default_factory=StereoRingConfig)
+    rim: RimFitConfig = field(default_factory=RimFitConfig)
     corners: CornerConfig = field(default_factory=CornerConfig)
     components: ComponentConfig = field(default_factory=ComponentConfig)
     use_components: bool = True
@@ -369,6 +398,8 @@ class StereoFrontend:
                 tracker.reset()
             obs = {cam: opts[0][0] for cam, opts in options.items() if opts}
         else:
+            if self.config.rim.enabled:
+                circles, chosen = self._outer_rim(circles, imgs, chosen, failures)
             for cam, (o, pol) in chosen.items():
                 self.rings[cam].commit(o, imgs[cam], pol)
             obs = {cam: o for cam, (o, _) in chosen.items()}
@@ -379,6 +410,70 @@ class StereoFrontend:
             for cam, o in obs.items()
         }
         return circles, obs, ellipses
+
+    def _radius_prior(self) -> tuple[float, float] | None:
+        known = self.config.stereo_ring.known_ring
+        return None if known is None else (known.outer_radius_m, known.radius_sigma_m)
+
+    def _outer_rim(
+        self,
+        circles: list[Circle3D],
+        imgs: dict[str, PreparedImage],
+        chosen: dict[str, tuple[EllipseObservation, int]],
+        failures: list[str],
+    ) -> tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]:
+        """Each candidate circle refitted on rim points only (`satpose.frontend.rim`): the
+        edges near the ring's ellipses include the wall's base and silhouettes where the wall
+        is visible. The ellipses become the refitted circle's images with the rim points.
+        A candidate whose refit fails keeps its all-points fit, and the frame says so."""
+        cfg = self.config
+        images = tuple(
+            RimImage(
+                image_s=smoothed(imgs[cam].gray, cfg.ring.edges),
+                raw=imgs[cam].gray,
+                polarity=chosen[cam][1],
+            )
+            for cam in ("left", "right")
+        )
+        prior = self._radius_prior()
+        fits: list[tuple[float, Circle3D, RimFit | None]] = []
+        reasons = []
+        for circ in circles:
+            try:
+                fit = fit_outer_rim(
+                    self.rig,
+                    circ,
+                    (images[0], images[1]),
+                    cfg.ring.edges,
+                    cfg.rim,
+                    radius_prior=prior,
+                )
+            except (GeometryFailure, ConicError, np.linalg.LinAlgError) as exc:
+                reasons.append(str(exc))
+                fits.append((math.inf, circ, None))
+                continue
+            fits.append((fit.rms_px, _inflate(fit.circle, cfg.stereo_ring, self.rig), fit))
+        if all(f is None for _, _, f in fits):
+            failures.append(f"ring: {reasons[0]}; the all-edges circle was kept")
+            return circles, chosen
+        fits.sort(key=lambda x: x[0])
+        best = fits[0][2]
+        assert best is not None
+        new_chosen = {}
+        for k, cam in enumerate(("left", "right")):
+            try:
+                o = projected_observation(
+                    self.rig,
+                    fits[0][1],
+                    Camera(cam),
+                    best.points[k],
+                    best.rms_px,
+                    chosen[cam][0].source,
+                )
+            except GeometryFailure:
+                return circles, chosen
+            new_chosen[cam] = (o, chosen[cam][1])
+        return [c for _, c, f in fits if f is not None], new_chosen
 
     def _circles(self, left: EllipseObservation, right: EllipseObservation) -> list[Circle3D]:
         """Both circular sections of the left cone, each refined jointly on both images' edge
@@ -406,6 +501,7 @@ class StereoFrontend:
                     left.edge_points_px,
                     right.edge_points_px,
                     iterations=6,
+                    radius_prior=self._radius_prior(),
                 )
             except GeometryFailure:
                 continue

@@ -285,7 +285,7 @@ def _tangent_bases(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, np.cross(normals, u)
 
 
-def _circle_conic(
+def circle_conic(
     K: np.ndarray, cam_from_left: Rigid3, center: np.ndarray, normal: np.ndarray, radius: float
 ) -> np.ndarray:
     """Image conic of a left-frame circle in a camera ``cam_from_left`` with intrinsics K."""
@@ -337,6 +337,7 @@ def refine_circle(
     right_points: np.ndarray,
     sigma_px: float | None = None,
     iterations: int = 8,
+    radius_prior: tuple[float, float] | None = None,
 ) -> Circle3D:
     """Fit a 3-D circle to the sub-pixel edge points of both images (Gauss-Newton on the
     points' first-order geometric distances to the projected circle), with covariance.
@@ -349,6 +350,9 @@ def refine_circle(
         left_points, right_points: (N, 2) / (M, 2) undistorted edge points of the ring's
             outer front edge in each image.
         sigma_px: edge point noise; estimated from the residuals if None.
+        radius_prior: ``(radius_m, sigma_m)`` of a ring whose outer radius is known (a
+            standard interface): one more residual ``(r - radius_m) / sigma_m``, in units of
+            the edge noise, so that it weighs as the prior says.
     """
     cams = [
         (
@@ -403,6 +407,8 @@ def refine_circle(
             r0, J = linearise(c, n, r)
             if not (np.all(np.isfinite(r0)) and np.all(np.isfinite(J))):
                 raise GeometryFailure(diverged)
+            if radius_prior is not None:
+                r0, J = _with_radius_prior(r0, J, r, radius_prior, sigma_px)
             step = _bounded_circle_step(np.linalg.lstsq(J, -r0, rcond=None)[0], r)
             c, n, r = unpack(step, c, n, r)
             if np.abs(step[:3]).max() < 1e-7 and np.abs(step[3:]).max() < 1e-8:
@@ -419,6 +425,8 @@ def refine_circle(
     if not (math.isfinite(r) and r > 0 and c[2] > 0):
         raise GeometryFailure(diverged)
     s2 = sigma_px**2 if sigma_px is not None else float(res @ res) / max(res.size - 6, 1)
+    if radius_prior is not None:
+        res, J = _with_radius_prior(res, J, r, radius_prior, math.sqrt(s2))
     try:
         cov6 = np.linalg.inv(J.T @ J) * s2
     except np.linalg.LinAlgError:
@@ -434,6 +442,29 @@ def refine_circle(
     if n @ c > 0:
         n = -n
     return Circle3D(center=c, normal=n, radius=r, covariance=0.5 * (cov7 + cov7.T))
+
+
+def _with_radius_prior(
+    res: np.ndarray,
+    J: np.ndarray,
+    r: float,
+    prior: tuple[float, float],
+    sigma_px: float | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel residuals and Jacobian (local parameters, last = log r) with the known-radius
+    residual appended, scaled by the pixel noise (given, or the residuals' RMS) so that it
+    weighs ``1 / sigma_m**2`` after the covariance's multiplication by the pixel variance."""
+    radius_m, sigma_m = prior
+    if not (radius_m > 0 and sigma_m > 0):
+        raise GeometryFailure(f"known ring: radius {radius_m} m and sigma {sigma_m} m must be > 0")
+    s = (
+        sigma_px
+        if sigma_px is not None
+        else max(math.sqrt(float(res @ res) / max(res.size - 6, 1)), 0.05)
+    )
+    row = np.zeros((1, J.shape[1]))
+    row[0, 5] = s * r / sigma_m
+    return np.r_[res, s * (r - radius_m) / sigma_m], np.vstack([J, row])
 
 
 MAX_CIRCLE_STEP = (0.5, 0.3, 0.3)
@@ -468,13 +499,13 @@ def circle_rms(
         [
             sampson_distance(
                 left_points,
-                _circle_conic(
+                circle_conic(
                     rig.K_left, Rigid3.identity(), circle.center, circle.normal, circle.radius
                 ),
             ),
             sampson_distance(
                 right_points,
-                _circle_conic(
+                circle_conic(
                     rig.K_right, rig.right_from_left, circle.center, circle.normal, circle.radius
                 ),
             ),

@@ -1,0 +1,323 @@
+"""The ring's outer front rim, and only it, from both images (the stereo generalisation issue).
+
+A docking or launch-adapter ring is a cylindrical wall with height. Its image shows the outer
+front rim, the wall's outer face between the rim and the base, the wall's two silhouette lines
+and the base; the outer contour of the whole ring is the convex hull of the rim's and the
+base's images, not the rim's image. Where the wall's outer face is visible, an edge found near
+the rim's ellipse may be the rim (the crease between the rim's front face and the wall), the
+base or a silhouette, and which one depends on materials and light. Fitting all of them as one
+ellipse biases the ellipse toward the base on the wall side, by a different amount in the two
+cameras (each sees the wall from its own centre: the silhouette is viewpoint-dependent), which
+is a depth and lateral bias of centimetres.
+
+Which points can be the rim follows from geometry alone. At a rim point ``P`` with outward
+radial direction ``rho``, the wall's outer face is turned toward a camera at ``C`` when
+``rho . (C - P) > 0``. Where it is turned away, the rim is the occluding edge of the ring there
+(the wall and base are hidden behind it), and the edge found is the rim; where it is turned
+toward the camera, the edge is ambiguous. `rim_labels` labels each sample of the current 3-D
+circle per camera (``rim`` or ``wall side``, with a margin of a few degrees around the
+silhouette's tangent point); `fit_outer_rim` searches sub-pixel edges along the normals of the
+circle's projection at the ``rim`` samples only, in each camera, and refits the 3-D circle
+(`satpose.frontend.stereo.refine_circle`) to them, twice. The labels depend on the camera
+centre, so the two cameras keep different arcs; for a camera inside the cylinder's extension
+(``|lateral offset| < radius``) no wall is visible and the whole rim is kept. The wall height is
+not needed, so the method works without the ring's dimensions (non-cooperative); a known
+outer radius (``known ring``) is used as a prior on the radius.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from satpose.datasets.geometry import Rigid3
+from satpose.frontend.conics import ConicError, Ellipse, conic_to_ellipse, sampson_distance
+from satpose.frontend.edges import EdgeSearchConfig, edges_along_normals
+from satpose.frontend.measurements import Camera, EllipseObservation
+from satpose.frontend.stereo import (
+    Circle3D,
+    GeometryFailure,
+    StereoRig,
+    circle_conic,
+    refine_circle,
+    tangent_basis,
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RimFitConfig:
+    """The rim-only refit of the ring's 3-D circle (`fit_outer_rim`).
+
+    Attributes:
+        enabled: refit on rim points only (False: the ring is the circle of all edge points
+            near the ring's ellipse, as before the stereo generalisation issue).
+        samples: samples of the circle's projection per camera.
+        wall_margin_deg: a sample is ``rim`` when the wall's outer face there is turned away
+            from the camera by at least this angle (``rho . (C - P) / |C - P| < -sin``);
+            covers the circle's own error near the silhouette's tangent point.
+        search_px: half-width of the first edge search along the projected circle's normals
+            (later passes search ``search_px / 2``).
+        passes: label-search-refit passes.
+        min_rim_fraction: fewer ``rim`` samples with an edge than this fraction of
+            ``samples`` in either camera and the refit is refused (the caller keeps the
+            all-points circle and says so).
+        outlier_sigma: edge points farther than this many robust standard deviations from
+            the refitted circle's image are dropped (bolt heads, a shadow's edge).
+    """
+
+    enabled: bool = False
+    samples: int = 240
+    wall_margin_deg: float = 5.0
+    search_px: float = 3.0
+    passes: int = 2
+    min_rim_fraction: float = 0.2
+    outlier_sigma: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.samples < 24:
+            raise ValueError(f"rim fit: samples must be >= 24, got {self.samples}")
+        if not 0.0 <= self.wall_margin_deg < 45.0:
+            raise ValueError(
+                f"rim fit: wall_margin_deg must be in [0, 45), got {self.wall_margin_deg}"
+            )
+        if not (self.search_px > 0 and self.passes >= 1 and 0 < self.min_rim_fraction <= 1):
+            raise ValueError("rim fit: search_px > 0, passes >= 1, 0 < min_rim_fraction <= 1")
+
+
+@dataclass(frozen=True)
+class RimFit:
+    """The ring's 3-D circle refitted on rim points, with what the labels kept.
+
+    Attributes:
+        circle: the refitted circle (left camera frame).
+        points: per camera (left, right) the rim edge points used [undistorted px].
+        rim_fraction: per camera, the fraction of the circle's samples labelled ``rim``
+            (the rest are on the side where the wall's outer face is visible).
+        rms_px: RMS first-order distance of the kept points to the circle's images.
+    """
+
+    circle: Circle3D
+    points: tuple[np.ndarray, np.ndarray]
+    rim_fraction: tuple[float, float]
+    rms_px: float
+
+
+def camera_centers(rig: StereoRig) -> tuple[np.ndarray, np.ndarray]:
+    """Left and right camera centres in the left camera frame [m]."""
+    T = rig.right_from_left
+    return np.zeros(3), -T.R.T @ T.t
+
+
+def rim_samples(circle: Circle3D, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` points on the circle and their outward radial directions, (n, 3) each."""
+    u, v = tangent_basis(circle.normal)
+    phi = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+    rho = np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v
+    return circle.center + circle.radius * rho, rho
+
+
+def wall_facing(points: np.ndarray, rho: np.ndarray, camera_center: np.ndarray) -> np.ndarray:
+    """Per rim point, the sine of the angle by which the wall's outer face there is turned
+    toward the camera (> 0: visible beside the rim; < 0: hidden behind it)."""
+    view = camera_center - points
+    return np.einsum("ij,ij->i", rho, view) / np.linalg.norm(view, axis=1)
+
+
+def rim_labels(
+    circle: Circle3D, rig: StereoRig, n: int, margin_deg: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Samples of the circle and per camera whether each is a clean ``rim`` sample.
+
+    Returns:
+        points (n, 3), and boolean masks (n,) for the left and the right camera.
+    """
+    P, rho = rim_samples(circle, n)
+    c_left, c_right = camera_centers(rig)
+    s = -math.sin(math.radians(margin_deg))
+    return P, wall_facing(P, rho, c_left) < s, wall_facing(P, rho, c_right) < s
+
+
+def _project(K: np.ndarray, cam_from_left: Rigid3, X: np.ndarray) -> np.ndarray:
+    Xc = X @ cam_from_left.R.T + cam_from_left.t
+    x = Xc @ K.T
+    return x[:, :2] / x[:, 2:3]
+
+
+def _outward_normals(conic: np.ndarray, pts: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """Unit normals of the conic at points on it, pointing away from ``center``."""
+    g = np.c_[pts, np.ones(len(pts))] @ conic
+    nrm = g[:, :2] / np.linalg.norm(g[:, :2], axis=1, keepdims=True)
+    flip = np.einsum("ij,ij->i", nrm, pts - center) < 0
+    nrm[flip] *= -1.0
+    return nrm
+
+
+def edges_at(
+    image_s: np.ndarray,
+    raw: np.ndarray,
+    pts: np.ndarray,
+    nrm: np.ndarray,
+    polarity: int,
+    half: float,
+    config: EdgeSearchConfig,
+) -> np.ndarray:
+    """Sub-pixel edges along the given outward normals (NaN where none). ``polarity`` +1:
+    brighter inside, -1: darker, 0: the stronger of both on each normal."""
+    if polarity != 0:
+        return edges_along_normals(image_s, pts, nrm, polarity, half, config, raw=raw)[0]
+    brighter, c_b = edges_along_normals(image_s, pts, nrm, +1, half, config, raw=raw)
+    darker, c_d = edges_along_normals(image_s, pts, nrm, -1, half, config, raw=raw)
+    return np.where((c_d > c_b)[:, None], darker, brighter)
+
+
+@dataclass(frozen=True)
+class RimImage:
+    """What `fit_outer_rim` needs of one camera's image."""
+
+    image_s: np.ndarray  # smoothed, `satpose.frontend.edges.smoothed`
+    raw: np.ndarray  # the undistorted grey image in [0, 1]
+    polarity: int  # the rim's edge polarity in this camera (+1, -1, 0)
+
+
+def fit_outer_rim(
+    rig: StereoRig,
+    circle: Circle3D,
+    images: tuple[RimImage, RimImage],
+    edges: EdgeSearchConfig,
+    config: RimFitConfig,
+    radius_prior: tuple[float, float] | None = None,
+) -> RimFit:
+    """Refit ``circle`` (fitted to all edges near the ring) on rim points only.
+
+    Per pass and camera: the circle's samples labelled ``rim`` (`rim_labels`), projected, edges
+    searched along the projection's normals with the rim's polarity, then `refine_circle` on
+    both cameras' points with a robust cut.
+
+    Raises:
+        GeometryFailure: too few rim edge points in a camera, or the refit failed.
+    """
+    cams = (
+        (rig.K_left, Rigid3.identity()),
+        (rig.K_right, rig.right_from_left),
+    )
+    half = config.search_px
+    kept: list[np.ndarray] = [np.zeros((0, 2)), np.zeros((0, 2))]
+    fractions = (0.0, 0.0)
+    for _ in range(config.passes):
+        P, m_left, m_right = rim_labels(circle, rig, config.samples, config.wall_margin_deg)
+        fractions = (float(m_left.mean()), float(m_right.mean()))
+        found = []
+        for (K, T), img, mask in zip(cams, images, (m_left, m_right), strict=True):
+            pts = _project(K, T, P[mask])
+            conic = circle_conic(K, T, circle.center, circle.normal, circle.radius)
+            center = _project(K, T, circle.center[None])[0]
+            nrm = _outward_normals(conic, pts, center)
+            e = edges_at(img.image_s, img.raw, pts, nrm, img.polarity, half, edges)
+            e = e[np.isfinite(e[:, 0])]
+            if e.shape[0] < config.min_rim_fraction * config.samples:
+                raise GeometryFailure(
+                    f"rim fit: {e.shape[0]} rim edge points in the "
+                    f"{'left' if T is cams[0][1] else 'right'} image "
+                    f"(of {int(mask.sum())} rim samples)"
+                )
+            found.append(e)
+        circle = refine_circle(
+            rig,
+            circle.center,
+            circle.normal,
+            circle.radius,
+            found[0],
+            found[1],
+            iterations=6,
+            radius_prior=radius_prior,
+        )
+        # robust cut: bolt heads or a shadow's edge next to the rim
+        res = [
+            sampson_distance(p, circle_conic(K, T, circle.center, circle.normal, circle.radius))
+            for p, (K, T) in zip(found, cams, strict=True)
+        ]
+        sigma = max(1.4826 * float(np.median(np.abs(np.concatenate(res)))), 0.05)
+        kept = [
+            p[np.abs(r) < config.outlier_sigma * sigma] for p, r in zip(found, res, strict=True)
+        ]
+        if min(len(k) for k in kept) < config.min_rim_fraction * config.samples:
+            raise GeometryFailure("rim fit: too few rim edge points after the robust cut")
+        circle = refine_circle(
+            rig,
+            circle.center,
+            circle.normal,
+            circle.radius,
+            kept[0],
+            kept[1],
+            iterations=6,
+            radius_prior=radius_prior,
+        )
+        half = config.search_px / 2
+    res_all = np.concatenate(
+        [
+            sampson_distance(p, circle_conic(K, T, circle.center, circle.normal, circle.radius))
+            for p, (K, T) in zip(kept, cams, strict=True)
+        ]
+    )
+    return RimFit(
+        circle=circle,
+        points=(kept[0], kept[1]),
+        rim_fraction=fractions,
+        rms_px=float(np.sqrt(np.mean(res_all**2))),
+    )
+
+
+def projected_observation(
+    rig: StereoRig,
+    circle: Circle3D,
+    camera: Camera,
+    points: np.ndarray,
+    sigma_px: float,
+    source: str,
+) -> EllipseObservation:
+    """The circle's image in one camera as an `EllipseObservation` (covariance propagated
+    from the circle's to first order), with the edge points it was fitted to.
+
+    Raises:
+        GeometryFailure: the projection is not an ellipse.
+    """
+    K, T = (
+        (rig.K_left, Rigid3.identity())
+        if camera is Camera.LEFT
+        else (
+            rig.K_right,
+            rig.right_from_left,
+        )
+    )
+
+    def params(x: np.ndarray) -> np.ndarray:
+        n = x[3:6] / np.linalg.norm(x[3:6])
+        return conic_to_ellipse(circle_conic(K, T, x[:3], n, float(x[6]))).params
+
+    x0 = np.r_[circle.center, circle.normal, circle.radius]
+    try:
+        e = Ellipse.from_params(params(x0))
+        J = np.zeros((5, 7))
+        for k in range(7):
+            h = 1e-6 * max(1.0, abs(float(x0[k])))
+            d = np.zeros(7)
+            d[k] = h
+            dp = params(x0 + d) - params(x0 - d)
+            dp[4] = (dp[4] + math.pi / 2) % math.pi - math.pi / 2  # angle wraps at pi
+            J[:, k] = dp / (2 * h)
+    except (ConicError, np.linalg.LinAlgError, ValueError) as exc:
+        raise GeometryFailure(f"the ring circle's image is not an ellipse ({exc})") from None
+    cov = J @ circle.covariance @ J.T
+    return EllipseObservation(
+        camera=camera,
+        center_px=e.center,
+        axes_px=[e.a, e.b],
+        angle_rad=e.theta,
+        conic=e.conic(),
+        covariance=0.5 * (cov + cov.T) + 1e-12 * np.eye(5),
+        edge_points_px=points,
+        sigma_px=max(sigma_px, 0.02),
+        source=source,
+    )
