@@ -25,8 +25,8 @@ Tightly coupled (``coupling = "tight"``):
   ``beta`` (> 0: the disparity measured too small) moves the centre away from the cameras
   along its line of sight by ``|c|^2 beta / (f b)`` (focal length
   ``f`` [px], baseline ``b``), so ``e = [t - c + u |c|^2 beta / (f b) ; B^T R e_z]`` with ``u =
-  c / |c|``, and the radius, fitted at that depth from the ellipses' sizes, by the factor
-  ``1 + |c| beta / (f b)`` (`ring_radius_factor`). The edges of a rim are seen differently
+  c / |c|`` (`ring_radius_factor` stays conditioned on the measured centre). The edges of a
+  rim are seen differently
   by the two cameras (its wall, a shadow's sliver, a glint; docs/frontend.md), a bias that
   the smoother cannot average away; with the variable its uncertainty is in every frame's
   covariance, and the radius shared over a changing range and the landmarks of a turning
@@ -128,10 +128,12 @@ class MeasurementConfig:
         gauge_sigma_m: standard deviation of the anchor's ``y = 0`` constraint [m]
             (effectively hard).
         ring_disparity_bias_px: standard deviation [px] of the ring edges' disparity bias
-            common to all frames (tight only; None: no such variable, each frame's ring is
-            independent). 0.2 px: on the random family's tuning seeds the per-sequence
-            depth biases of the ring correspond to 0.06-0.29 px of disparity
-            (docs/results/ring_wall_tuning.md).
+            common to all frames (tight only; None, the default: no such variable, each
+            frame's ring is independent). On the random family's tuning seeds the
+            per-sequence depth biases of the ring correspond to 0.06-0.29 px of disparity
+            (0.2 makes the smoothers' covariances honest there); off by default because the
+            landmarks then fix the depth alone, and their own depth bias shows
+            (docs/backend.md, "The ring's common disparity bias").
         spin_rate: turn accepted spin-rate measurements (`FrameMeasurements.spin`) into
             factors on ``|omega|``. Only windows disjoint from the last one used are taken:
             consecutive sliding windows share all but one frame, and as independent factors
@@ -152,7 +154,7 @@ class MeasurementConfig:
     ring_circle_gap: float = 0.04
     max_orb_per_frame: int | None = 20
     spin_rate: bool = True
-    ring_disparity_bias_px: float | None = 0.2
+    ring_disparity_bias_px: float | None = None
 
     def __post_init__(self) -> None:
         if self.coupling not in ("loose", "tight"):
@@ -326,12 +328,12 @@ def ring_radius_factor(
     circle: int,
     config: MeasurementConfig,
     clock: FactorClock | None = None,
-    focal_baseline: float | None = None,
 ) -> gtsam.CustomFactor:
     """The ring's radius at state ``i`` against the radius variable ``R(circle)``, conditioned
     on the centre and normal (see the module docstring): ``e = (rho - r) - K^T e_cn``,
-    ``de/dX = -K^T de_cn/dX``, ``de/drho = 1``; with ``focal_baseline`` the measured radius
-    is ``rho (1 + |c| beta / (f b))`` and ``e_cn`` includes the bias as in `ring_factor`."""
+    ``de/dX = -K^T de_cn/dX``, ``de/drho = 1``. It is conditioned on the *measured* centre
+    (without the common disparity bias): a centre measured too far by ``d`` comes with a radius
+    too large by ``K^T d`` (the circle fit's own regression), which the term already holds."""
     c = np.asarray(m.center_m, float)
     B = tangent_basis(m.normal)
     r = float(m.radius_m)
@@ -341,36 +343,22 @@ def ring_radius_factor(
     if not variance > 0:
         raise BackendError("ring covariance: the radius is determined by the centre and normal")
     H_rho = np.asfortranarray(np.ones((1, 1)))
-    depth = float(np.linalg.norm(c))
-    dc = None if focal_baseline is None else c * depth / focal_baseline
-    dr = None if focal_baseline is None else depth / focal_baseline  # relative, per px
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
         t0 = clock.start() if clock is not None else 0.0
         ks = this.keys()
         e_cn, Hx = _centre_normal(values.atPose3(ks[0]), c, B, H is not None)
-        rho = values.atVector(ks[1])[0]
-        if dc is None or dr is None:
-            e = np.array([rho - r - K @ e_cn])
-        else:
-            beta = values.atVector(ks[2])[0]
-            e_cn[0:3] += dc * beta
-            e = np.array([rho * (1 + dr * beta) - r - K @ e_cn])
+        e = np.array([values.atVector(ks[1])[0] - r - K @ e_cn])
         if H is not None:
             assert Hx is not None
             H[0] = np.asfortranarray(-(K @ Hx)[None, :])
-            if dc is None or dr is None:
-                H[1] = H_rho
-            else:
-                H[1] = np.asfortranarray(np.full((1, 1), 1 + dr * beta))
-                H[2] = np.asfortranarray(np.full((1, 1), rho * dr - float(K[0:3] @ dc)))
+            H[1] = H_rho
         if clock is not None:
             clock.stop(t0)
         return e
 
     noise = robust(gtsam.noiseModel.Isotropic.Sigma(1, math.sqrt(variance)), 1, config)
-    keys = [X(i), R(circle)] if dc is None else [X(i), R(circle), DISPARITY_BIAS]
-    return gtsam.CustomFactor(noise, keys, error)
+    return gtsam.CustomFactor(noise, [X(i), R(circle)], error)
 
 
 def landmark_factors(

@@ -312,9 +312,7 @@ class GraphBuilder:
                             f"ring: another circle of the rim, radius {m.ring.radius_m:.4f} m"
                         )
                 self.circles[k].append(float(m.ring.radius_m))
-                update.factors.push_back(
-                    ring_radius_factor(m.ring, i, k, self.config, self.clock, fb)
-                )
+                update.factors.push_back(ring_radius_factor(m.ring, i, k, self.config, self.clock))
         orb_left = self.config.max_orb_per_frame
         for lm in sorted(m.landmarks, key=self._landmark_priority):
             if lm.kind not in self.config.landmark_kinds:

@@ -229,6 +229,10 @@ ABLATIONS = (
     ("every ORB track (`max_orb_per_frame: null`)", {"max_orb_per_frame": None}),
     ("10 ORB tracks per frame", {"max_orb_per_frame": 10}),
     ("no ORB tracks (`max_orb_per_frame: 0`)", {"max_orb_per_frame": 0}),
+    (
+        "the ring's common disparity bias (`ring_disparity_bias_px: 0.2`)",
+        {"ring_disparity_bias_px": 0.2},
+    ),
 )
 
 
