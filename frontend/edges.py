@@ -216,13 +216,7 @@ def _step_model(
     n = points.shape[0]
     lo, hi = config.model_window_px
     t = np.arange(lo, hi + 1e-9, 0.25, dtype=np.float64)  # relative to the coarse edge
-    pos = points[:, None, :] + (coarse[:, None] + t[None, :])[..., None] * normals[:, None, :]
-    y = sample_image(
-        raw.astype(np.float32),
-        pos[..., 0].astype(np.float32),
-        pos[..., 1].astype(np.float32),
-        "linear",
-    ).astype(np.float64)
+    y = _raw_profiles(raw, points, normals, coarse, t)
     y = -polarity * y  # now rising from the bright (low) side to the dark (high) side
     A = y[:, : max(2, int(0.25 * len(t)))].mean(axis=1)  # bright side level (low after flip)
     B = y[:, -2:].mean(axis=1)
@@ -252,6 +246,20 @@ def _step_model(
                 )
     ok = (B - A) > config.min_step
     return coarse + s0, ok
+
+
+def _raw_profiles(
+    raw: np.ndarray, points: np.ndarray, normals: np.ndarray, at: np.ndarray, t: np.ndarray
+) -> np.ndarray:
+    """Bilinear profiles (N, T) of the unsmoothed image along each normal, at offsets ``t``
+    from ``points + at * normals``."""
+    pos = points[:, None, :] + (at[:, None] + t[None, :])[..., None] * normals[:, None, :]
+    return sample_image(
+        raw.astype(np.float32),
+        pos[..., 0].astype(np.float32),
+        pos[..., 1].astype(np.float32),
+        "linear",
+    ).astype(np.float64)
 
 
 def _fit_width(t: np.ndarray, y: np.ndarray, A: np.ndarray, B: np.ndarray, s0: np.ndarray) -> float:
@@ -298,17 +306,11 @@ def _dark_band_edges(
     ``2 I1 = (A - D) u^2 + (D - B) v^2 + B R^2 - A L^2``: a quadratic in ``u``. Normals
     without a dip, or whose solution is not a band (``v < u``) inside the window, keep
     ``edge``."""
+    if polarity < 0:  # the band is darker than both sides: only for a bright inside
+        return edge
     lo, hi = config.dark_band_window_px
     t = np.arange(lo, hi + 1e-9, 0.25)
-    pos = points[:, None, :] + (edge[:, None] + t[None, :])[..., None] * normals[:, None, :]
-    y = sample_image(
-        raw.astype(np.float32),
-        pos[..., 0].astype(np.float32),
-        pos[..., 1].astype(np.float32),
-        "linear",
-    ).astype(np.float64)
-    if polarity < 0:  # make the inside the bright side (the band is darker than both)
-        return edge
+    y = _raw_profiles(raw, points, normals, edge, t)
     k = 3  # plateaus: the 0.75 px at each end of the window
     A = y[:, :k].mean(axis=1)
     B = y[:, -k:].mean(axis=1)

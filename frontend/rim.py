@@ -223,16 +223,7 @@ def fit_outer_rim(
                     f"(of {int(mask.sum())} rim samples)"
                 )
             found.append(e)
-        circle = refine_circle(
-            rig,
-            circle.center,
-            circle.normal,
-            circle.radius,
-            found[0],
-            found[1],
-            iterations=6,
-            radius_prior=radius_prior,
-        )
+        circle = _refit(rig, circle, found, radius_prior)
         # robust cut: bolt heads or a shadow's edge next to the rim
         res = [
             sampson_distance(p, circle_conic(K, T, circle.center, circle.normal, circle.radius))
@@ -244,16 +235,7 @@ def fit_outer_rim(
         ]
         if min(len(k) for k in kept) < config.min_rim_fraction * config.samples:
             raise GeometryFailure("rim fit: too few rim edge points after the robust cut")
-        circle = refine_circle(
-            rig,
-            circle.center,
-            circle.normal,
-            circle.radius,
-            kept[0],
-            kept[1],
-            iterations=6,
-            radius_prior=radius_prior,
-        )
+        circle = _refit(rig, circle, kept, radius_prior)
         half = config.search_px / 2
     res_all = np.concatenate(
         [
@@ -266,6 +248,24 @@ def fit_outer_rim(
         points=(kept[0], kept[1]),
         rim_fraction=fractions,
         rms_px=float(np.sqrt(np.mean(res_all**2))),
+    )
+
+
+def _refit(
+    rig: StereoRig,
+    circle: Circle3D,
+    points: list[np.ndarray],
+    radius_prior: tuple[float, float] | None,
+) -> Circle3D:
+    return refine_circle(
+        rig,
+        circle.center,
+        circle.normal,
+        circle.radius,
+        points[0],
+        points[1],
+        iterations=6,
+        radius_prior=radius_prior,
     )
 
 
