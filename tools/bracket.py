@@ -29,6 +29,7 @@ import csv
 import logging
 import math
 import shutil
+from dataclasses import replace
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -47,7 +48,12 @@ from satpose.frontend.bracket import (
     solve_bracket,
     to_frame_measurements,
 )
-from satpose.frontend.bracket_lines import StrutDetection, StrutDetectorConfig, detect_struts
+from satpose.frontend.bracket_lines import (
+    StrutDetection,
+    StrutDetectorConfig,
+    detect_partial,
+    detect_struts,
+)
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
 from satpose.frontend.preprocess import Undistorter
 from satpose.tools.badframes import BadFrames
@@ -86,6 +92,42 @@ def bracket_from_target(seq: Sequence, side: int) -> tuple[BracketGeometry, floa
             f"{path}: solar_brackets[{side}] is not {{P1, P2, P5}} ({exc})"
         ) from None
     return BracketGeometry(vertices_m=v), None
+
+
+def partial_view(seq: Sequence) -> tuple[float, float | None] | None:
+    """``(visible fraction, strut radius [m] or None)`` when target.yaml describes the bracket
+    for the paper's view (a ``bracket`` entry: its ``visible_fraction``, and the struts'
+    diameter ``bracket_strut_width_m``), else None (``solar_brackets``: the whole triangle
+    with its yoke, `detect_struts`)."""
+    if seq.target is None or seq.target.bracket is None:
+        return None
+    path = seq.root / "target.yaml"
+    width = seq.target.extras.get("bracket_strut_width_m")
+    if width is None:
+        return seq.target.bracket.visible_fraction, None
+    try:
+        w = float(width)
+    except (TypeError, ValueError):
+        raise BracketRunError(f"{path}: bracket_strut_width_m must be a number, got {width!r}")
+    if not (math.isfinite(w) and w > 0):
+        raise BracketRunError(f"{path}: bracket_strut_width_m must be positive, got {w}")
+    return seq.target.bracket.visible_fraction, w / 2
+
+
+def _extrapolated(
+    prev: BracketResult | None, before: tuple[int, BracketResult] | None, k: int, k_prev: int
+) -> Rigid3 | None:
+    """The pose predicted for frame ``k``: constant relative motion from the last two poses
+    (frames ``before[0]`` and ``k_prev``), or the last pose."""
+    if prev is None or prev.pose is None:
+        return None
+    if before is None or before[1].pose is None or k_prev <= before[0]:
+        return prev.pose
+    step = prev.pose @ before[1].pose.inverse()  # camera-frame motion per frame interval
+    n = (k - k_prev) / (k_prev - before[0])
+    if n != 1.0:
+        return prev.pose
+    return step @ prev.pose
 
 
 def draw_overlay(
@@ -158,6 +200,9 @@ def run_bracket(
     und = Undistorter(cam)
     K = cam.K
     det_cfg = StrutDetectorConfig() if detector is None else detector
+    partial = partial_view(seq)
+    if partial is not None:
+        det_cfg = replace(det_cfg, strut_radius_m=partial[1])
     solver = BracketConfig()
     bad = BadFrames(seq.root)
     with staged_output(out, overwrite, error=BracketRunError) as stage:
@@ -166,6 +211,8 @@ def run_bracket(
         per_frame: list[tuple[float, Rigid3]] = []
         rows: list[list[Any]] = []
         prev: BracketResult | None = None
+        k_prev = -1
+        before: tuple[int, BracketResult] | None = None
         for k, fr in enumerate(seq.frames):
             n0 = (len(frames), len(per_frame), len(rows))
             prev_before = prev
@@ -188,6 +235,18 @@ def run_bracket(
                         det = StrutDetection(
                             None, None, np.zeros((0, 4)), reason=f"image {prep.problem}"
                         )
+                    elif partial is not None:
+                        predicted = _extrapolated(prev, before, k, k_prev)
+                        det = detect_partial(
+                            prep.gray8, K, geo, partial[0], det_cfg, predicted=predicted
+                        )
+                        if det.observation is None and predicted is not None:
+                            # lost: a new search (it refuses an ambiguous labelling itself)
+                            det = detect_partial(prep.gray8, K, geo, partial[0], det_cfg)
+                        if det.observation is not None and det.result is not None:
+                            result = solve_bracket(
+                                det.observation, geo, K, solver, prior_depths=det.result.depths_m
+                            )
                     else:
                         predicted = prev.pose if prev is not None else None
                         det = detect_struts(prep.gray8, K, geo, det_cfg, predicted=predicted)
@@ -205,7 +264,11 @@ def run_bracket(
                             )
                     reason = det.reason if result is None else result.reason
                     if result is not None and result.pose is not None:
-                        prev = result
+                        if prev is not None and k_prev == k - 1:
+                            before = (k_prev, prev)
+                        else:
+                            before = None
+                        prev, k_prev = result, k
                         per_frame.append((fr.t_s, result.pose))
                         frames.append(to_frame_measurements(result, fr.index, fr.t_s))
                     else:
