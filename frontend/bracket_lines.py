@@ -567,7 +567,23 @@ def detect_struts(
         obs = _observation(base, s1, s2, cfg)
         if obs is None:
             return StrutDetection(None, None, seg, tuple(cands), reason="struts parallel")
-        res = solve_bracket(obs, geometry, K, solver)
+        # among several P3P solutions the one nearest the prediction's depths (z of P1, P2, P5)
+        res = solve_bracket(
+            obs, geometry, K, solver, prior_depths=predicted.apply(geometry.vertices_m)[:, 2]
+        )
+        if res.pose is not None and not _within_gate(res.pose, predicted, cfg):
+            # the candidates nearest the projected struts gave a pose the motion cannot
+            # explain (a neighbouring edge taken for a strut): refused, the caller searches
+            ang, dist = _pose_distance(res.pose, predicted)
+            return StrutDetection(
+                None,
+                None,
+                seg,
+                tuple(cands),
+                reason=f"tracked pose departs from the prediction by {ang:.1f} deg, "
+                f"{1e3 * dist:.0f} mm",
+                hypotheses=1,
+            )
         return StrutDetection(obs, (base, s1, s2), seg, tuple(cands), res, res.reason, 1)
     best_det: StrutDetection | None = None
     best_score = -math.inf
@@ -613,6 +629,24 @@ def detect_struts(
             seg,
             tuple(cands),
             reason=f"no consistent bracket among {len(top)} strut candidates ({tried} tried)",
+        )
+    if (
+        reference is not None
+        and best_det.result is not None
+        and best_det.result.pose is not None
+        and not _within_gate(best_det.result.pose, reference, cfg)
+    ):
+        # the re-detection's closest labelling is still far from the last pose: no
+        # labelling in this frame is consistent with the track (seen: 342 mm / 21 deg)
+        ang, dist = _pose_distance(best_det.result.pose, reference)
+        return StrutDetection(
+            None,
+            None,
+            seg,
+            tuple(cands),
+            reason=f"re-detection departs from the last pose by {ang:.1f} deg, "
+            f"{1e3 * dist:.0f} mm",
+            hypotheses=tried,
         )
     if (
         reference is None

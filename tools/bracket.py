@@ -29,8 +29,8 @@ import csv
 import logging
 import math
 import shutil
-from dataclasses import replace
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -108,7 +108,9 @@ def partial_view(seq: Sequence) -> tuple[float, float | None] | None:
     try:
         w = float(width)
     except (TypeError, ValueError):
-        raise BracketRunError(f"{path}: bracket_strut_width_m must be a number, got {width!r}")
+        raise BracketRunError(
+            f"{path}: bracket_strut_width_m must be a number, got {width!r}"
+        ) from None
     if not (math.isfinite(w) and w > 0):
         raise BracketRunError(f"{path}: bracket_strut_width_m must be positive, got {w}")
     return seq.target.bracket.visible_fraction, w / 2
@@ -456,3 +458,60 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.set_defaults(handler=_handler)
+
+
+def render_family_member(args: argparse.Namespace) -> None:
+    """``satpose render bracket-random --seed N --out DIR [--frames N] [--size WxH]``: one
+    member of the bracket family (`satpose.datasets.bracket_family`)."""
+    import sys
+    import time
+
+    from tqdm import tqdm
+
+    from satpose.datasets.bracket_family import (
+        BRACKET_RANDOM_NAME,
+        DEFAULT_FRAMES,
+        DEFAULT_SIZE,
+        TUNING_SEEDS,
+        VALIDATION_SEEDS,
+        BracketFamilyError,
+        render_bracket_sequence,
+        split_of,
+    )
+
+    if args.seed is None:
+        raise BracketFamilyError(
+            f"render {BRACKET_RANDOM_NAME} needs --seed N (tuning seeds {TUNING_SEEDS.start}-"
+            f"{TUNING_SEEDS.stop - 1}, validation seeds {VALIDATION_SEEDS.start}-"
+            f"{VALIDATION_SEEDS.stop - 1})"
+        )
+    for flag in ("spp", "config"):
+        if getattr(args, flag, None) is not None:
+            raise BracketFamilyError(
+                f"render {BRACKET_RANDOM_NAME}: --{flag} does not apply (a numpy ray caster "
+                "with 2x2 samples per pixel; the scene is the seed's)"
+            )
+    frames = args.frames or DEFAULT_FRAMES
+    size = args.size or DEFAULT_SIZE
+    start = time.perf_counter()
+    with tqdm(
+        total=frames,
+        desc=f"render {BRACKET_RANDOM_NAME} {args.seed}",
+        unit="frame",
+        file=sys.stderr,
+        dynamic_ncols=True,
+        delay=0.5,
+    ) as bar:
+        render_bracket_sequence(
+            args.seed,
+            args.out,
+            frames=frames,
+            size=size,
+            overwrite=args.overwrite,
+            progress=lambda _k: bar.update(1),
+        )
+    elapsed = time.perf_counter() - start
+    print(
+        f"wrote {frames} mono frames ({size[0]}x{size[1]}) of {BRACKET_RANDOM_NAME} seed "
+        f"{args.seed} ({split_of(args.seed)} set) to {args.out} in {elapsed:.1f} s"
+    )
