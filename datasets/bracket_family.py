@@ -232,6 +232,40 @@ def _fits(cam: PinholeCamera, pose: Rigid3, pts_b: np.ndarray) -> bool:
     )
 
 
+_Motion = tuple[float, float, float, float, float, float, float, np.ndarray]
+
+
+def _draw_motion(
+    rng: np.random.Generator, centre: np.ndarray, normal: np.ndarray, ref: PinholeCamera
+) -> _Motion:
+    """``(r0, r1, tilt0, tilt1, azimuth, roll0, roll1, aim_end)`` [m, rad, image fraction]."""
+    tilt0 = math.radians(_u(rng, TILT_RANGE_DEG))
+    tilt1 = tilt0 + math.radians(_u(rng, TILT_CHANGE_RANGE_DEG))
+    azim = _u(rng, (0.0, 2 * math.pi))
+    roll0 = math.radians(_u(rng, ROLL_RANGE_DEG))
+    roll1 = roll0 + math.radians(_u(rng, ROLL_CHANGE_RANGE_DEG))
+    r0 = _u(rng, START_RANGE_M)
+    r1 = _u(rng, END_RANGE_M)
+    aim_end = np.array([_u(rng, AIM_OFFSET_RANGE), _u(rng, AIM_OFFSET_RANGE)])
+    return (r0, r1, tilt0, tilt1, azim, roll0, roll1, aim_end)
+
+
+def _camera_pose(
+    m: _Motion, s: float, r_end: float, centre: np.ndarray, normal: np.ndarray, ref: PinholeCamera
+) -> Rigid3:
+    """``B_from_cam`` at the fraction ``s`` of the sequence."""
+    r0, _, tilt0, tilt1, azim, roll0, roll1, aim_end = m
+    tilt = (1 - s) * tilt0 + s * tilt1
+    direction = np.array(
+        [math.sin(tilt) * math.cos(azim), math.sin(tilt) * math.sin(azim), math.cos(tilt)]
+    )
+    rng_m = r0 * (r_end / r0) ** s  # geometric approach: constant closing per range
+    # the aim point drifts off centre as the camera closes in (a fraction of the image)
+    off = s * aim_end * rng_m * ref.width / ref.K[0, 0]
+    aim = centre + np.array([off[0], off[1], 0.0])
+    return _look(aim + rng_m * direction, aim, (1 - s) * roll0 + s * roll1, normal)
+
+
 def bracket_draw(
     seed: int,
     frames: int = DEFAULT_FRAMES,
@@ -270,33 +304,25 @@ def bracket_draw(
         pts = np.vstack([pts, v[2]])
     centre = pts.mean(axis=0)
     normal = np.array([0.0, 0.0, 1.0])
-    tilt0 = math.radians(_u(rng, TILT_RANGE_DEG))
-    tilt1 = tilt0 + math.radians(_u(rng, TILT_CHANGE_RANGE_DEG))
-    azim = _u(rng, (0.0, 2 * math.pi))
-    roll0 = math.radians(_u(rng, ROLL_RANGE_DEG))
-    roll1 = roll0 + math.radians(_u(rng, ROLL_CHANGE_RANGE_DEG))
-    r0 = _u(rng, START_RANGE_M)
-    r1 = _u(rng, END_RANGE_M)
-    aim_end = np.array([_u(rng, AIM_OFFSET_RANGE), _u(rng, AIM_OFFSET_RANGE)])
     span = float(np.max(np.linalg.norm(pts - centre, axis=1)))
+    # the motion: redrawn (from the same generator) until the measured points stay in the
+    # image; the last frames' range is raised until they fit
+    for _attempt in range(100):
+        motion = _draw_motion(rng, centre, normal, ref)
+        r_end = motion[1]
+        while r_end <= motion[0] and not all(
+            _fits(ref, _camera_pose(motion, s, r_end, centre, normal, ref), pts)
+            for s in np.linspace(0, 1, 9)
+        ):
+            r_end *= 1.05
+        if r_end <= motion[0]:
+            break
+    else:
+        raise BracketFamilyError(f"seed {seed}: no motion keeps the bracket in the image")
 
     def pose(s: float, r_end: float) -> Rigid3:
-        tilt = (1 - s) * tilt0 + s * tilt1
-        direction = np.array(
-            [math.sin(tilt) * math.cos(azim), math.sin(tilt) * math.sin(azim), math.cos(tilt)]
-        )
-        rng_m = r0 * (r_end / r0) ** s  # geometric approach: constant closing per range
-        # the aim point drifts off centre as the camera closes in (a fraction of the image)
-        off = s * aim_end * rng_m * ref.width / ref.K[0, 0]
-        aim = centre + np.array([off[0], off[1], 0.0])
-        return _look(aim + rng_m * direction, aim, (1 - s) * roll0 + s * roll1, normal)
+        return _camera_pose(motion, s, r_end, centre, normal, ref)
 
-    # the last frames' range: at least what keeps the measured points in the image
-    r_end = r1
-    while not all(_fits(ref, pose(s, r_end), pts) for s in np.linspace(0, 1, 9)):
-        r_end *= 1.05
-        if r_end > r0:
-            raise BracketFamilyError(f"seed {seed}: the bracket does not fit the image")
     s_all = np.linspace(0.0, 1.0, frames)
     poses = tuple(pose(float(s), r_end) for s in s_all)
     # light: the sun on the camera's side of the bracket plane, off the line of sight

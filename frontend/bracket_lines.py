@@ -24,7 +24,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -87,8 +87,11 @@ class StrutDetectorConfig:
             most this (one scale for all three).
         gate_deg, gate_rel: tracking: a pose farther than ``gate_deg`` in attitude or
             ``gate_rel`` x range (+ 2 cm) in position from the predicted (or reference) pose
-            is refused ("departs from the prediction"), and a second labelling inside the
-            gate makes the frame ambiguous.
+            is refused ("departs from the prediction").
+        rival_deg, rival_rel: paper's view without a prediction: a second consistent
+            hypothesis (another labelling, or another P3P solution of the same labelling)
+            whose pose differs from the best by more than ``rival_deg`` in attitude or
+            ``rival_rel`` x range in position makes the frame ambiguous (refused).
     """
 
     blur_sigma_px: float = 1.2
@@ -105,15 +108,17 @@ class StrutDetectorConfig:
     yoke_weight: float = 2.0
     min_yoke_margin: float = 0.25
     relabel_angle_deg: float = 30.0
-    base_candidates: int = 30
+    base_candidates: int = 150
     stub_candidates: int = 4
     end_sigma_px: float = 3.0
     end_sigma_rel: float = 0.05
     max_end_chi: float = 3.0
     width_ratio_range: tuple[float, float] = (0.35, 1.8)
     max_width_spread: float = 0.35
-    gate_deg: float = 10.0
-    gate_rel: float = 0.15
+    gate_deg: float = 15.0
+    gate_rel: float = 0.25
+    rival_deg: float = 3.0
+    rival_rel: float = 0.03
 
 
 @dataclass(frozen=True)
@@ -147,6 +152,10 @@ class StrutDetection:
         candidates: every strut candidate.
         result: the pose solved while choosing the hypothesis (no covariance), or None.
         reason: why ``observation`` is None ("" when found).
+        hypotheses: how many hypotheses were solved.
+        alternatives: `detect_partial` without a prediction: one detection per distinct
+            consistent pose, best first (several: the frame is refused as ambiguous; they
+            are the candidates `PartialTracker` follows over frames).
     """
 
     observation: BracketObservation | None
@@ -156,6 +165,7 @@ class StrutDetection:
     result: BracketResult | None = None
     reason: str = ""
     hypotheses: int = field(default=0)
+    alternatives: tuple[StrutDetection, ...] = ()
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -571,10 +581,12 @@ def detect_struts(
         res = solve_bracket(
             obs, geometry, K, solver, prior_depths=predicted.apply(geometry.vertices_m)[:, 2]
         )
-        if res.pose is not None and not _within_gate(res.pose, predicted, cfg):
+        if res.pose is not None and not _within_gate(
+            res.pose, predicted, cfg, geometry.vertices_m.mean(axis=0)
+        ):
             # the candidates nearest the projected struts gave a pose the motion cannot
             # explain (a neighbouring edge taken for a strut): refused, the caller searches
-            ang, dist = _pose_distance(res.pose, predicted)
+            ang, dist = _pose_distance(res.pose, predicted, geometry.vertices_m.mean(axis=0))
             return StrutDetection(
                 None,
                 None,
@@ -634,18 +646,19 @@ def detect_struts(
         reference is not None
         and best_det.result is not None
         and best_det.result.pose is not None
-        and not _within_gate(best_det.result.pose, reference, cfg)
+        and not _within_gate(best_det.result.pose, reference, cfg, geometry.vertices_m.mean(axis=0))
     ):
         # the re-detection's closest labelling is still far from the last pose: no
         # labelling in this frame is consistent with the track (seen: 342 mm / 21 deg)
-        ang, dist = _pose_distance(best_det.result.pose, reference)
+        ang, dist = _pose_distance(
+            best_det.result.pose, reference, geometry.vertices_m.mean(axis=0)
+        )
         return StrutDetection(
             None,
             None,
             seg,
             tuple(cands),
-            reason=f"re-detection departs from the last pose by {ang:.1f} deg, "
-            f"{1e3 * dist:.0f} mm",
+            reason=f"re-detection departs from the last pose by {ang:.1f} deg, {1e3 * dist:.0f} mm",
             hypotheses=tried,
         )
     if (
@@ -761,14 +774,24 @@ def _verify(
     return cost, ""
 
 
-def _pose_distance(a: Rigid3, b: Rigid3) -> tuple[float, float]:
-    """(attitude difference [deg], position difference [m])."""
-    return _rotation_deg(a, b), float(np.linalg.norm(a.t - b.t))
+def _pose_distance(a: Rigid3, b: Rigid3, centre: np.ndarray | None = None) -> tuple[float, float]:
+    """(attitude difference [deg], difference of where the two poses put ``centre``, the
+    bracket's centroid in the target frame [m]; the target origin when None)."""
+    c = np.zeros(3) if centre is None else np.asarray(centre, dtype=float)
+    return _rotation_deg(a, b), float(np.linalg.norm(a.apply(c[None])[0] - b.apply(c[None])[0]))
 
 
-def _within_gate(pose: Rigid3, ref: Rigid3, cfg: StrutDetectorConfig) -> bool:
-    ang, dist = _pose_distance(pose, ref)
-    return ang <= cfg.gate_deg and dist <= cfg.gate_rel * float(np.linalg.norm(ref.t)) + 0.02
+def _within_gate(
+    pose: Rigid3, ref: Rigid3, cfg: StrutDetectorConfig, centre: np.ndarray | None = None
+) -> bool:
+    """``pose`` within ``gate_deg`` and ``gate_rel`` x range (+ 2 cm) of ``ref``, positions and
+    range taken at ``centre`` (target frame)."""
+    c = np.zeros(3) if centre is None else np.asarray(centre, dtype=float)
+    ang, dist = _pose_distance(pose, ref, c)
+    return (
+        ang <= cfg.gate_deg
+        and dist <= cfg.gate_rel * float(np.linalg.norm(ref.apply(c[None])[0])) + 0.02
+    )
 
 
 def _stubs_at(end: np.ndarray, base: Strut, cands: list[Strut], tol: float, n: int) -> list[Strut]:
@@ -850,9 +873,9 @@ def detect_partial(
     candidates starting at its ends, both labellings, every admissible P3P solution; a
     hypothesis stands if the camera is on the known face, the visible strut ends lie where the
     known ``fraction`` puts them and the strut widths agree with ``f 2 r / z``
-    (``config.strut_radius_m``). Without a prediction, consistent hypotheses with different
-    labellings (attitudes more than ``relabel_angle_deg`` or positions more than ``gate_rel``
-    x range apart) make the frame *refused* as ambiguous. With a prediction (tracking), only
+    (``config.strut_radius_m``). Without a prediction, two consistent hypotheses whose poses
+    differ (by more than ``rival_deg`` or ``rival_rel`` x range: another labelling, or
+    another P3P solution) make the frame *refused* as ambiguous. With a prediction (tracking), only
     candidates near the projected struts are tried and the pose must lie inside the gate
     around the prediction, else the frame is refused.
 
@@ -889,7 +912,8 @@ def detect_partial(
         vertex_sigma_m=geometry.vertex_sigma_m,
         visible_fraction=fraction if fraction < 1 else None,
     )
-    solver = BracketConfig(covariance=False)
+    # least squares from each start: near a double root noise turns the true pair complex
+    solver = BracketConfig(covariance=False, prior_least_squares=True)
     triples = _partial_triples(cands, cfg, predicted, geo, K, fraction)
     hyps: list[tuple[float, StrutDetection]] = []
     why: Counter[str] = Counter()
@@ -901,10 +925,17 @@ def detect_partial(
         if obs is None:
             continue
         try:
-            roots = p3p_depths(_apex_rays(obs, K), geo.sides_m)
+            rays = _apex_rays(obs, K)
+            starts = [*p3p_depths(rays, geo.sides_m)]
         except (ValueError, np.linalg.LinAlgError, ZeroDivisionError):
             continue
-        for d in roots if len(roots) else [None]:
+        # also from a fronto-parallel guess at the base's scale, and from the prediction
+        starts.append(
+            np.full(3, geo.sides_m[0] / max(float(np.linalg.norm(rays[0] - rays[1])), 1e-9))
+        )
+        if predicted is not None:
+            starts.append(predicted.apply(geo.vertices_m)[:, 2])
+        for d in starts:
             res = solve_bracket(obs, geo, K, solver, prior_depths=d)
             if res.pose is None:
                 why[res.reason.split(":")[0]] += 1
@@ -916,7 +947,7 @@ def detect_partial(
                 why[reason.split(" (")[0]] += 1
                 continue
             if predicted is not None:
-                ang, dist = _pose_distance(res.pose, predicted)
+                ang, dist = _pose_distance(res.pose, predicted, geometry.vertices_m.mean(axis=0))
                 gate_m = cfg.gate_rel * float(np.linalg.norm(predicted.t)) + 0.02
                 if ang > cfg.gate_deg or dist > gate_m:
                     why[f"departs from the prediction by {ang:.0f} deg, {1e3 * dist:.0f} mm"] += 1
@@ -942,30 +973,171 @@ def detect_partial(
     best_cost, best = hyps[0]
     assert best.result is not None and best.result.pose is not None
     bp = best.result.pose
+    distinct: list[StrutDetection] = []
     if predicted is None:
-        gate_m = cfg.gate_rel * float(np.linalg.norm(bp.t)) + 0.02
-        rivals = [
-            c
-            for c, h in hyps[1:]
-            if h.result is not None
-            and h.result.pose is not None
-            and (
-                _rotation_deg(h.result.pose, bp) > cfg.relabel_angle_deg
-                or float(np.linalg.norm(h.result.pose.t - bp.t)) > gate_m
-            )
-        ]
-        if rivals:
+        ctr = geo.vertices_m.mean(axis=0)
+        rival_m = cfg.rival_rel * float(np.linalg.norm(bp.apply(ctr[None])[0]))
+        for _, h in hyps:
+            assert h.result is not None and h.result.pose is not None
+            p = h.result.pose
+            if all(
+                _rotation_deg(p, q.result.pose) > cfg.rival_deg
+                or _pose_distance(p, q.result.pose, ctr)[1] > rival_m
+                for q in distinct
+                if q.result is not None and q.result.pose is not None
+            ):
+                distinct.append(replace(h, hypotheses=len(triples)))
+        if len(distinct) > 1:
             return StrutDetection(
                 None,
                 None,
                 seg,
                 tuple(cands),
                 reason=(
-                    f"labelling ambiguous: {len(rivals) + 1} consistent labellings "
-                    f"(costs {best_cost:.1f} and {min(rivals):.1f})"
+                    f"labelling ambiguous: {len(distinct)} consistent poses "
+                    f"(costs {best_cost:.1f} and {hyps[1][0]:.1f})"
                 ),
                 hypotheses=len(triples),
+                alternatives=tuple(distinct),
             )
     return StrutDetection(
-        best.observation, best.struts, seg, tuple(cands), best.result, "", len(triples)
+        best.observation,
+        best.struts,
+        seg,
+        tuple(cands),
+        best.result,
+        "",
+        len(triples),
+        tuple(distinct),
     )
+
+
+@dataclass
+class _Track:
+    """Poses ``(frame, left_cam_from_target)`` of one labelling followed over frames, with the
+    detection of its last frame and its consecutive misses."""
+
+    poses: list[tuple[int, Rigid3]]
+    detection: StrutDetection
+    misses: int = 0
+
+    @property
+    def last(self) -> Rigid3:
+        return self.poses[-1][1]
+
+    def predict(self, k: int) -> Rigid3:
+        """Frame ``k``'s pose: constant relative motion from the last two poses when they are
+        one frame apart and ``k`` follows the last, else the last pose."""
+        (k1, p1) = self.poses[-1]
+        if len(self.poses) >= 2 and k == k1 + 1 and self.poses[-2][0] == k1 - 1:
+            p0 = self.poses[-2][1]
+            return (p1 @ p0.inverse()) @ p1
+        return p1
+
+
+class PartialTracker:
+    """Frame-to-frame `detect_partial` with the labelling settled over frames.
+
+    One frame of the paper's view often fits several poses (the P3P solutions of ``p1, p2``
+    and the apex, told apart only weakly by where the visible strut ends lie, and the
+    labellings of a near-symmetric bracket): such a frame is refused. Each distinct consistent
+    pose of a frame is associated with the candidate track whose predicted pose is nearest
+    (inside the gate), or starts a new candidate; a candidate without a consistent pose in
+    ``max_misses`` frames in a row is dropped. A candidate is adopted, and reported from that
+    frame on, when it has been followed over at least ``min_frames`` frames and every other
+    live candidate is younger by at least ``min_frames`` (a solution that has existed as long
+    as the adopted one would be as plausible: then nothing is adopted). A frame whose search
+    finds a single consistent pose is adopted at once. An adopted track is followed with its
+    prediction (`detect_partial` with ``predicted``); when lost, the search starts afresh.
+
+    Args:
+        K: 3x3 intrinsics of the undistorted images.
+        geometry: the bracket (target frame).
+        fraction: visible part of the side struts (0, 1].
+        config: detector settings.
+        min_frames: see above.
+        max_misses: see above.
+        max_candidates: at most this many candidate tracks (the best-scoring new ones).
+    """
+
+    def __init__(
+        self,
+        K: np.ndarray,
+        geometry: BracketGeometry,
+        fraction: float,
+        config: StrutDetectorConfig | None = None,
+        min_frames: int = 3,
+        max_misses: int = 2,
+        max_candidates: int = 8,
+    ) -> None:
+        self.K = np.asarray(K, dtype=float)
+        self.geometry = geometry
+        self.fraction = fraction
+        self.config = StrutDetectorConfig() if config is None else config
+        self.min_frames = min_frames
+        self.max_misses = max_misses
+        self.max_candidates = max_candidates
+        self.track: _Track | None = None
+        self.candidates: list[_Track] = []
+
+    def step(self, k: int, image: np.ndarray) -> StrutDetection:
+        """Detect in frame ``k`` (increasing) of the undistorted grey ``image``."""
+        cfg = self.config
+        if self.track is not None:
+            det = detect_partial(
+                image, self.K, self.geometry, self.fraction, cfg, self.track.predict(k)
+            )
+            if det.result is not None and det.result.pose is not None:
+                self.track.poses.append((k, det.result.pose))
+                return det
+            self.track = None  # lost: search afresh
+            self.candidates = []
+        det = detect_partial(image, self.K, self.geometry, self.fraction, cfg)
+        if det.observation is not None and det.result is not None and det.result.pose is not None:
+            self.track = _Track([(k, det.result.pose)], det)
+            self.candidates = []
+            return det
+        free = list(det.alternatives)
+        ctr = self.geometry.vertices_m.mean(axis=0)
+        for t in self.candidates:
+            pred = t.predict(k)
+            near = [
+                (sum(_pose_distance(a.result.pose, pred, ctr)), a)
+                for a in free
+                if a.result is not None
+                and a.result.pose is not None
+                and _within_gate(a.result.pose, pred, cfg, ctr)
+            ]
+            if near:
+                a = min(near, key=lambda x: x[0])[1]
+                free = [x for x in free if x is not a]
+                assert a.result is not None and a.result.pose is not None
+                t.poses.append((k, a.result.pose))
+                t.detection, t.misses = a, 0
+            else:
+                t.misses += 1
+        self.candidates = [t for t in self.candidates if t.misses < self.max_misses]
+        for a in free:
+            if len(self.candidates) >= self.max_candidates:
+                break
+            assert a.result is not None and a.result.pose is not None
+            self.candidates.append(_Track([(k, a.result.pose)], a))
+        hit = [t for t in self.candidates if t.misses == 0 and t.poses[-1][0] == k]
+        if hit:
+            oldest = max(hit, key=lambda t: len(t.poses))
+            age = len(oldest.poses)
+            if age >= self.min_frames and all(
+                len(t.poses) <= age - self.min_frames for t in self.candidates if t is not oldest
+            ):
+                self.track, self.candidates = oldest, []
+                return oldest.detection
+        if not det.alternatives:
+            return det
+        return StrutDetection(
+            None,
+            None,
+            det.segments,
+            det.candidates,
+            reason=f"{det.reason}; {len(self.candidates)} candidate tracks not yet settled",
+            hypotheses=det.hypotheses,
+        )

@@ -49,9 +49,9 @@ from satpose.frontend.bracket import (
     to_frame_measurements,
 )
 from satpose.frontend.bracket_lines import (
+    PartialTracker,
     StrutDetection,
     StrutDetectorConfig,
-    detect_partial,
     detect_struts,
 )
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
@@ -116,22 +116,6 @@ def partial_view(seq: Sequence) -> tuple[float, float | None] | None:
     return seq.target.bracket.visible_fraction, w / 2
 
 
-def _extrapolated(
-    prev: BracketResult | None, before: tuple[int, BracketResult] | None, k: int, k_prev: int
-) -> Rigid3 | None:
-    """The pose predicted for frame ``k``: constant relative motion from the last two poses
-    (frames ``before[0]`` and ``k_prev``), or the last pose."""
-    if prev is None or prev.pose is None:
-        return None
-    if before is None or before[1].pose is None or k_prev <= before[0]:
-        return prev.pose
-    step = prev.pose @ before[1].pose.inverse()  # camera-frame motion per frame interval
-    n = (k - k_prev) / (k_prev - before[0])
-    if n != 1.0:
-        return prev.pose
-    return step @ prev.pose
-
-
 def draw_overlay(
     gray8: np.ndarray,
     det: StrutDetection,
@@ -185,6 +169,7 @@ def run_bracket(
     detector: StrutDetectorConfig | None = None,
     angular_noise: float = 1e-5,
     linear_noise: float = 2e-4,
+    require_pose: bool = True,
 ) -> dict[str, Any]:
     """Run the bracket method on a mono (or stereo: left image only) sequence; see the module
     docstring for the files. Returns a summary (frames with a pose, RMS errors if truth).
@@ -192,7 +177,10 @@ def run_bracket(
     ``angular_noise`` [rad/s^2/sqrt(Hz)] and ``linear_noise`` [m/s^2/sqrt(Hz)] set the
     smoother's constant-twist prior (`satpose.backend.MotionConfig`). The angular default is
     10x the backend's: with 1 s between frames the backend's 1e-5 makes iSAM2's system
-    indeterminate at the first twist (seen on `bracket-final`)."""
+    indeterminate at the first twist (seen on `bracket-final`).
+
+    A sequence without any pose is an error unless ``require_pose`` is False (benchmarks:
+    then the trajectories are empty and points.csv holds every frame's reason)."""
     seq = load_sequence(sequence_path)
     check_out(out, overwrite, error=BracketRunError)
     geo, fraction = bracket_from_target(seq, side)
@@ -203,9 +191,12 @@ def run_bracket(
     K = cam.K
     det_cfg = StrutDetectorConfig() if detector is None else detector
     partial = partial_view(seq)
+    tracker: PartialTracker | None = None
     if partial is not None:
         det_cfg = replace(det_cfg, strut_radius_m=partial[1])
     solver = BracketConfig()
+    if partial is not None:
+        tracker = PartialTracker(K, geo, partial[0], det_cfg)
     bad = BadFrames(seq.root)
     with staged_output(out, overwrite, error=BracketRunError) as stage:
         (stage / "overlay").mkdir()
@@ -213,8 +204,6 @@ def run_bracket(
         per_frame: list[tuple[float, Rigid3]] = []
         rows: list[list[Any]] = []
         prev: BracketResult | None = None
-        k_prev = -1
-        before: tuple[int, BracketResult] | None = None
         for k, fr in enumerate(seq.frames):
             n0 = (len(frames), len(per_frame), len(rows))
             prev_before = prev
@@ -237,17 +226,15 @@ def run_bracket(
                         det = StrutDetection(
                             None, None, np.zeros((0, 4)), reason=f"image {prep.problem}"
                         )
-                    elif partial is not None:
-                        predicted = _extrapolated(prev, before, k, k_prev)
-                        det = detect_partial(
-                            prep.gray8, K, geo, partial[0], det_cfg, predicted=predicted
-                        )
-                        if det.observation is None and predicted is not None:
-                            # lost: a new search (it refuses an ambiguous labelling itself)
-                            det = detect_partial(prep.gray8, K, geo, partial[0], det_cfg)
+                    elif tracker is not None:
+                        det = tracker.step(k, prep.gray8)
                         if det.observation is not None and det.result is not None:
                             result = solve_bracket(
-                                det.observation, geo, K, solver, prior_depths=det.result.depths_m
+                                det.observation,
+                                geo,
+                                K,
+                                replace(solver, prior_least_squares=True),
+                                prior_depths=det.result.depths_m,
                             )
                     else:
                         predicted = prev.pose if prev is not None else None
@@ -266,11 +253,7 @@ def run_bracket(
                             )
                     reason = det.reason if result is None else result.reason
                     if result is not None and result.pose is not None:
-                        if prev is not None and k_prev == k - 1:
-                            before = (k_prev, prev)
-                        else:
-                            before = None
-                        prev, k_prev = result, k
+                        prev = result
                         per_frame.append((fr.t_s, result.pose))
                         frames.append(to_frame_measurements(result, fr.index, fr.t_s))
                     else:
@@ -309,8 +292,10 @@ def run_bracket(
             w = csv.writer(fh)
             w.writerow(POINT_COLUMNS)
             w.writerows(rows)
-        if not per_frame:
+        if not per_frame and require_pose:
             raise BracketRunError(f"{sequence_path}: no frame gave a bracket pose")
+        if not per_frame:
+            estimator = "none"  # nothing to smooth: empty trajectories, the reasons written
         write_tum([t for t, _ in per_frame], [p for _, p in per_frame], stage / "per_frame.tum")
         smoothed: dict[int, Rigid3] = {}
         if estimator != "none":
