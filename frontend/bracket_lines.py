@@ -117,8 +117,8 @@ class StrutDetectorConfig:
     max_width_spread: float = 0.35
     gate_deg: float = 15.0
     gate_rel: float = 0.25
-    rival_deg: float = 3.0
-    rival_rel: float = 0.03
+    rival_deg: float = 8.0
+    rival_rel: float = 0.05
 
 
 @dataclass(frozen=True)
