@@ -9,11 +9,13 @@ on each, and writes docs/results/bracket_family_{tuning,validation}.md:
 - mislabelled frames reported as good: a reported pose whose ``p1`` lies nearer the true image
   of ``P2`` than of ``P1`` (or the reverse for ``p2``), or whose attitude error exceeds 20 deg;
 - per-frame error against the Cramer-Rao bound of what is actually measured (`measured_bound`:
-  ``p1, p2`` and the two strut directions, exact vertices) at the noise actually measured on
-  that split (RMS of ``p1, p2`` about the true vertex images per coordinate, and of the strut
-  directions ``p1 -> p4``, ``p2 -> p3`` about the true ones). The strut directions come from
-  line fits along the whole visible stub: far more precise than two independent points with
-  the vertices' noise, which is why `pose_information_bound`'s independent-point model does
+  ``p1, p2``, the two strut directions and the two visible stub lengths, exact vertices) at
+  the noise actually measured on that split (RMS of ``p1, p2`` about the true vertex images
+  per coordinate, of the strut directions ``p1 -> p4``, ``p2 -> p3`` about the true ones, and
+  of the stub lengths about the true ones; the stub lengths are what the known visible
+  fraction adds, and the detector uses them only to choose among P3P solutions). The strut
+  directions come from line fits along the whole visible stub: far more precise than two
+  independent points with the vertices' noise, which is why `pose_information_bound`'s independent-point model does
   not apply to this detector (it gives a bound several times above the errors measured);
 - bias: the mean signed error (camera frame) next to the RMS error;
 - the refusal reasons.
@@ -69,35 +71,50 @@ def _angle_diff(a: np.ndarray, b: np.ndarray) -> float:
     return math.atan2(float(a[0] * b[1] - a[1] * b[0]) * -1.0, float(a @ b))
 
 
-def _image_quantities(pose: Rigid3, V: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """What the detector measures, as functions of the pose: ``p1, p2`` [px] and the image
-    directions of the struts ``P1P5``, ``P2P5`` at their base vertices [rad]."""
-    px = project(pose, V, K)
+def _image_quantities(pose: Rigid3, V: np.ndarray, K: np.ndarray, fraction: float) -> np.ndarray:
+    """What the detector measures, as functions of the pose: ``p1, p2`` [px], the image
+    directions of the struts ``P1P5``, ``P2P5`` at their base vertices [rad] and (``fraction``
+    < 1) the lengths of the visible stubs [px]."""
+    ends = np.array([V[0] + fraction * (V[2] - V[0]), V[1] + fraction * (V[2] - V[1])])
+    px = project(pose, np.vstack([V, ends]), K)
     d1 = px[2] - px[0]
     d2 = px[2] - px[1]
-    return np.array([*px[0], *px[1], math.atan2(d1[1], d1[0]), math.atan2(d2[1], d2[0])])
+    out = [*px[0], *px[1], math.atan2(d1[1], d1[0]), math.atan2(d2[1], d2[0])]
+    if fraction < 1:
+        out += [float(np.linalg.norm(px[3] - px[0])), float(np.linalg.norm(px[4] - px[1]))]
+    return np.array(out)
 
 
 def measured_bound(
-    pose: Rigid3, V: np.ndarray, K: np.ndarray, sigma_px: float, sigma_rad: float
+    pose: Rigid3,
+    V: np.ndarray,
+    K: np.ndarray,
+    fraction: float,
+    sigma_px: float,
+    sigma_rad: float,
+    sigma_end_px: float,
 ) -> np.ndarray:
     """Cramer-Rao bound (6x6, ``[rotation (rad, camera frame), translation (m)]``) of the pose
-    from the quantities the detector measures (``p1``, ``p2`` with ``sigma_px`` per
-    coordinate, the two strut directions with ``sigma_rad``; exact bracket). Six numbers for
-    six unknowns: the bound is ``J^-1 Sigma J^-T``."""
-    J = np.zeros((6, 6))
+    from the quantities the detector measures, each with the noise measured on the split:
+    ``p1``, ``p2`` (``sigma_px`` per coordinate), the two strut directions (``sigma_rad``)
+    and, with a visible fraction below 1, the two stub lengths (``sigma_end_px``); exact
+    bracket. ``(J^T W J)^-1`` by central differences."""
+    J = []
     eps = 1e-6
     for i in range(6):
         e = np.zeros(6)
         e[i] = eps
-        R = rotvec_to_matrix(e[:3]) @ pose.R
-        hp = _image_quantities(Rigid3(R=R, t=pose.t + e[3:]), V, K)
-        R = rotvec_to_matrix(-e[:3]) @ pose.R
-        hm = _image_quantities(Rigid3(R=R, t=pose.t - e[3:]), V, K)
-        J[:, i] = (hp - hm) / (2 * eps)
-    S = np.diag([sigma_px**2] * 4 + [sigma_rad**2] * 2)
-    Ji = np.linalg.pinv(J)
-    return Ji @ S @ Ji.T
+        hp = _image_quantities(
+            Rigid3(R=rotvec_to_matrix(e[:3]) @ pose.R, t=pose.t + e[3:]), V, K, fraction
+        )
+        hm = _image_quantities(
+            Rigid3(R=rotvec_to_matrix(-e[:3]) @ pose.R, t=pose.t - e[3:]), V, K, fraction
+        )
+        J.append((hp - hm) / (2 * eps))
+    Jm = np.array(J).T
+    sig = [sigma_px] * 4 + [sigma_rad] * 2 + ([sigma_end_px] * 2 if fraction < 1 else [])
+    W = np.diag(1.0 / np.square(sig))
+    return np.linalg.pinv(Jm.T @ W @ Jm)
 
 
 def score_sequence(seq_path: Path, run_dir: Path) -> dict:
@@ -146,6 +163,12 @@ def score_sequence(seq_path: Path, run_dir: Path) -> dict:
                     _angle_diff(p[3] - p[0], apex - true_px[0]),
                     _angle_diff(p[2] - p[1], apex - true_px[1]),
                 ],
+                dend=[
+                    float(np.linalg.norm(p[3] - p[0]) - np.linalg.norm(true_px[2] - true_px[0])),
+                    float(np.linalg.norm(p[2] - p[1]) - np.linalg.norm(true_px[3] - true_px[1])),
+                ]
+                if frac < 1
+                else [],
             )
         rows.append(row)
     return {"rows": rows, "fraction": frac, "V": V, "K": K, "cpu_s": cpu, "summary": summary}
@@ -187,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     dth = np.array([x for r in clean for x in r["dtheta"]], dtype=float)
     sigma_rad = float(np.sqrt(np.mean(dth**2))) if dth.size else math.nan
     mean_px = float(np.mean(resid)) if resid.size else math.nan
+    dend = np.array([x for r in clean for x in r["dend"]], dtype=float)
+    sigma_end = float(np.sqrt(np.mean(dend**2))) if dend.size else math.nan
 
     # the bound per frame at the measured point noise, exact vertices
     lines = []
@@ -195,7 +220,9 @@ def main(argv: list[str] | None = None) -> int:
         rows = [r for r in res["rows"] if "e_pos_m" in r and not r["mislabelled"]]
         s_rot, s_pos, e_r, e_p = [], [], [], []
         for r in rows:
-            C = measured_bound(r["T"], res["V"], res["K"], sigma_px, sigma_rad)
+            C = measured_bound(
+                r["T"], res["V"], res["K"], res["fraction"], sigma_px, sigma_rad, sigma_end
+            )
             s_rot.append(math.degrees(math.sqrt(np.trace(C[:3, :3]))))
             s_pos.append(math.sqrt(np.trace(C[3:, 3:])))
             e_r.append(float(np.linalg.norm(r["e_rot_deg"])))
@@ -259,7 +286,8 @@ def main(argv: list[str] | None = None) -> int:
             f"({ratio_pos:.2f}x); attitude {rms(err_rot):.2f} vs {rms(crb_rot):.2f} deg "
             f"({ratio_rot:.2f}x); bound at the noise measured on this split: {sigma_px:.2f} "
             f"px per vertex coordinate (mean {mean_px:+.2f} px), "
-            f"{math.degrees(sigma_rad):.3f} deg per strut direction | "
+            f"{math.degrees(sigma_rad):.3f} deg per strut direction, {sigma_end:.2f} px "
+            "per stub length | "
             f"{'yes' if max(ratio_pos, ratio_rot) <= 1.2 else 'no'} |",
             f"| zero mislabelled frames reported as good | {len(mislabelled)} | "
             f"{'yes' if not mislabelled else 'no'} |",
