@@ -15,8 +15,9 @@ on each, and writes docs/results/bracket_family_{tuning,validation}.md:
   of the stub lengths about the true ones; the stub lengths are what the known visible
   fraction adds, and the detector uses them only to choose among P3P solutions). The strut
   directions come from line fits along the whole visible stub: far more precise than two
-  independent points with the vertices' noise, which is why `pose_information_bound`'s independent-point model does
-  not apply to this detector (it gives a bound several times above the errors measured);
+  independent points with the vertices' noise, which is why `pose_information_bound`'s
+  independent-point model does not apply to this detector (its bound is several times above
+  the errors measured);
 - bias: the mean signed error (camera frame) next to the RMS error;
 - the refusal reasons.
 

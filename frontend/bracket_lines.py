@@ -976,25 +976,38 @@ def detect_partial(
     distinct: list[StrutDetection] = []
     if predicted is None:
         ctr = geo.vertices_m.mean(axis=0)
-        rival_m = cfg.rival_rel * float(np.linalg.norm(bp.apply(ctr[None])[0]))
+        range_m = float(np.linalg.norm(bp.apply(ctr[None])[0]))
+        # distinct poses at a fine resolution (the tracker follows each of them: merging two
+        # nearby P3P solutions would let a track hop from one to the other) ...
         for _, h in hyps:
             assert h.result is not None and h.result.pose is not None
             p = h.result.pose
             if all(
-                _rotation_deg(p, q.result.pose) > cfg.rival_deg
-                or _pose_distance(p, q.result.pose, ctr)[1] > rival_m
+                _rotation_deg(p, q.result.pose) > 1.0
+                or _pose_distance(p, q.result.pose, ctr)[1] > 0.01 * range_m
                 for q in distinct
                 if q.result is not None and q.result.pose is not None
             ):
                 distinct.append(replace(h, hypotheses=len(triples)))
-        if len(distinct) > 1:
+        # ... and the frame ambiguous if any of them is a rival of the best
+        rivals = [
+            q
+            for q in distinct[1:]
+            if q.result is not None
+            and q.result.pose is not None
+            and (
+                _rotation_deg(bp, q.result.pose) > cfg.rival_deg
+                or _pose_distance(bp, q.result.pose, ctr)[1] > cfg.rival_rel * range_m
+            )
+        ]
+        if rivals:
             return StrutDetection(
                 None,
                 None,
                 seg,
                 tuple(cands),
                 reason=(
-                    f"labelling ambiguous: {len(distinct)} consistent poses "
+                    f"labelling ambiguous: {len(rivals) + 1} consistent poses "
                     f"(costs {best_cost:.1f} and {hyps[1][0]:.1f})"
                 ),
                 hypotheses=len(triples),
@@ -1045,8 +1058,8 @@ class PartialTracker:
     (inside the gate), or starts a new candidate; a candidate without a consistent pose in
     ``max_misses`` frames in a row is dropped. A candidate is adopted, and reported from that
     frame on, when it has been followed over at least ``min_frames`` frames and every other
-    live candidate is younger by at least ``min_frames`` (a solution that has existed as long
-    as the adopted one would be as plausible: then nothing is adopted). A frame whose search
+    candidate has been dropped (while two live on, both explain every frame so far: nothing
+    is reported). A frame whose search
     finds a single consistent pose is adopted at once. An adopted track is followed with its
     prediction (`detect_partial` with ``predicted``); when lost, the search starts afresh.
 
@@ -1126,9 +1139,7 @@ class PartialTracker:
         if hit:
             oldest = max(hit, key=lambda t: len(t.poses))
             age = len(oldest.poses)
-            if age >= self.min_frames and all(
-                len(t.poses) <= age - self.min_frames for t in self.candidates if t is not oldest
-            ):
+            if age >= self.min_frames and len(self.candidates) == 1:
                 self.track, self.candidates = oldest, []
                 return oldest.detection
         if not det.alternatives:
