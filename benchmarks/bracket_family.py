@@ -50,7 +50,14 @@ from satpose.datasets.bracket_family import (
 )
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix
 from satpose.datasets.sequence import load_sequence
-from satpose.frontend.bracket import project
+from satpose.frontend.bracket import (
+    BracketGeometry,
+    absolute_orientation,
+    incentre,
+    p3p_depths,
+    project,
+)
+from satpose.frontend.bracket_lines import StrutDetectorConfig
 from satpose.tools.bracket import run_bracket
 
 MAX_RANGE_M = 1.5
@@ -118,6 +125,47 @@ def measured_bound(
     return np.linalg.pinv(Jm.T @ W @ Jm)
 
 
+def ambiguous_noise_free(T: Rigid3, V: np.ndarray, K: np.ndarray, fraction: float) -> bool:
+    """Whether the exact image of the bracket (``p1, p2``, the apex from the exact strut
+    lines) already fits a second pose: a P3P solution other than the truth (more than the
+    detector's rival distance away: 8 deg or 5 % of the range) with the camera on the front
+    face and its visible stub ends within the detector's 3 sigma (``3 px + 5 %`` of the stub)
+    of the exact ones. Such a frame is ambiguous whatever the detector does."""
+    cfg = StrutDetectorConfig()
+    geo = BracketGeometry(vertices_m=V, vertex_sigma_m=0.0)
+    px = project(T, V, K)
+    rays = np.c_[px, np.ones(3)] @ np.linalg.inv(K).T
+    rays = rays / rays[:, 2:3]
+    ends = np.array([V[0] + fraction * (V[2] - V[0]), V[1] + fraction * (V[2] - V[1])])
+    true_ends = project(T, ends, K)
+    ctr = V.mean(axis=0)
+    range_m = float(np.linalg.norm(T.apply(ctr[None])[0]))
+    mod4 = np.vstack([V, incentre(V)])
+    for d in p3p_depths(rays, geo.sides_m):
+        cam = d[:, None] * rays
+        R, t = absolute_orientation(mod4, np.vstack([cam, incentre(cam)]))
+        pose = Rigid3(R=R, t=t)
+        dR = math.degrees(float(np.linalg.norm(matrix_to_rotvec(pose.R @ T.R.T))))
+        dc = float(np.linalg.norm(pose.apply(ctr[None])[0] - T.apply(ctr[None])[0]))
+        if dR <= cfg.rival_deg and dc <= cfg.rival_rel * range_m:
+            continue  # the truth itself
+        normal = pose.rotate(np.cross(V[1] - V[0], V[2] - V[0]))
+        if float(-pose.apply(V.mean(axis=0)[None])[0] @ normal) <= 0:
+            continue
+        if fraction < 1:
+            e = project(pose, ends, K)
+            ok = True
+            for i, start in ((0, px[0]), (1, px[1])):
+                length = float(np.linalg.norm(true_ends[i] - start))
+                sigma = cfg.end_sigma_px + cfg.end_sigma_rel * length
+                if float(np.linalg.norm(e[i] - true_ends[i])) > cfg.max_end_chi * sigma:
+                    ok = False
+            if not ok:
+                continue
+        return True
+    return False
+
+
 def score_sequence(seq_path: Path, run_dir: Path) -> dict:
     """Per-frame rows of one member: range, pose or reason, errors, point residuals."""
     seq = load_sequence(seq_path)
@@ -141,7 +189,13 @@ def score_sequence(seq_path: Path, run_dir: Path) -> dict:
         rng_m = float(np.linalg.norm(T.apply(model).mean(axis=0)))
         r = points[fr.index]
         est = poses.get(round(fr.t_s, 6))
-        row: dict = {"seed": seq_path.name, "frame": fr.index, "range_m": rng_m, "T": T}
+        row: dict = {
+            "seed": seq_path.name,
+            "frame": fr.index,
+            "range_m": rng_m,
+            "T": T,
+            "ambiguous_exact": ambiguous_noise_free(T, V, K, frac),
+        }
         if est is None:
             row["reason"] = r["reason"].split(":")[0].split(" (")[0] or "no pose"
         else:
@@ -240,7 +294,9 @@ def main(argv: list[str] | None = None) -> int:
         bias_rot = np.mean([r["e_rot_deg"] for r in rows], axis=0) if rows else np.full(3, np.nan)
         reasons = Counter(r["reason"] for r in srows if "reason" in r)
         lines.append(
-            f"| {seed} | {res['fraction']:.2f} | {max(r['range_m'] for r in srows):.2f}-"
+            f"| {seed} | {res['fraction']:.2f} | "
+            f"{sum(r['ambiguous_exact'] for r in srows)}/{len(srows)} | "
+            f"{max(r['range_m'] for r in srows):.2f}-"
             f"{min(r['range_m'] for r in srows):.2f} | {sum('e_pos_m' in r for r in srows)}/"
             f"{len(srows)} | {n_near_pose}/{n_near} | "
             f"{sum(r.get('mislabelled', False) for r in srows)} | "
@@ -298,6 +354,13 @@ def main(argv: list[str] | None = None) -> int:
             f"[{', '.join(f'{x:+.2f}' for x in all_bias_rot)}] deg (RMS error "
             f"{1e3 * rms(err_pos):.1f} mm, {rms(err_rot):.2f} deg).",
             "",
+            f"Frames whose exact image already fits a second pose (`ambiguous_noise_free`: "
+            f"another P3P solution with its stub ends within the detector's tolerance): "
+            f"{sum(r['ambiguous_exact'] for r in all_rows)}/{len(all_rows)} "
+            f"(under {MAX_RANGE_M} m: {sum(r['ambiguous_exact'] for r in near)}/{len(near)}); "
+            "a single frame cannot be labelled there whatever the detector does, only the "
+            "track over frames can.",
+            "",
             "Refusals (frames without a pose, by reason): "
             + (", ".join(f"{k} ({n})" for k, n in reasons.most_common()) or "none")
             + ".",
@@ -308,9 +371,10 @@ def main(argv: list[str] | None = None) -> int:
             "errors RMS over its correctly labelled frames; bound: the Cramer-Rao bound's RMS "
             "at those frames; bias: norm of the mean signed error):",
             "",
-            "| seed | visible fraction | range m | with pose | under 1.5 m | mislabelled | "
+            "| seed | visible fraction | ambiguous exact image | range m | with pose | "
+            "under 1.5 m | mislabelled | "
             "pos mm | bound mm | rot deg | bound deg | bias mm | bias deg | refusals |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
             *lines,
             "",
         ]
