@@ -16,6 +16,11 @@
    struts as ``p4``, ``p3``, with ``sigma_px`` from the scatter of the supporting segment
    endpoints about the fitted centre lines.
 
+The paper's view (base strut and the first part of the side struts, the apex hidden behind a
+solar array with its own grid of straight lines): `detect_partial` (hypothesise and verify
+with the known visible fraction and strut width; an ambiguous frame is refused) and
+`PartialTracker` (the labelling settled over frames); docs/bracket.md, "The paper's view".
+
 No truth is read: only the image, the intrinsics and the bracket's known geometry.
 """
 

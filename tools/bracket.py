@@ -5,6 +5,10 @@ bracket pose with its covariance (`satpose.frontend.bracket`), then smooth the p
 with the backend's constant-twist smoother (loosely coupled). The bracket geometry comes from
 target.yaml: ``bracket`` if present, else ``solar_brackets[--side]`` (a known-geometry method
 reads only the geometry it needs). Ground truth, if present, is used only for the report.
+A ``bracket`` entry (the paper's view: ``visible_fraction`` and the struts' diameter
+``bracket_strut_width_m``) is measured with `satpose.frontend.bracket_lines.PartialTracker`
+(base strut and stubs, labelling settled over frames, ambiguous frames refused);
+``solar_brackets`` (whole triangle with its yoke) with ``detect_struts``.
 
 DIR (written to a temporary folder, then renamed):
 
