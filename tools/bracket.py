@@ -297,7 +297,9 @@ def run_bracket(
             w.writerow(POINT_COLUMNS)
             w.writerows(rows)
         if not per_frame and require_pose:
-            raise BracketRunError(f"{sequence_path}: no frame gave a bracket pose")
+            raise BracketRunError(
+                f"{sequence_path}: no frame gave a bracket pose ({refusal_summary(frames)})"
+            )
         if not per_frame:
             estimator = "none"  # nothing to smooth: empty trajectories, the reasons written
         write_tum([t for t, _ in per_frame], [p for _, p in per_frame], stage / "per_frame.tum")
