@@ -247,8 +247,9 @@ def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> li
     img = cv2.GaussianBlur(img, (0, 0), config.blur_sigma_px)
 
     def sample(p: np.ndarray) -> float:
-        x = int(np.clip(round(p[0]), 0, w - 1))
-        y = int(np.clip(round(p[1]), 0, h - 1))
+        # nearest pixel, clipped (Python scalars: np.clip per call dominated the search time)
+        x = min(max(round(float(p[0])), 0), w - 1)
+        y = min(max(round(float(p[1])), 0), h - 1)
         return float(img[y, x])
 
     p = seg[:, :2]
@@ -864,6 +865,28 @@ def _partial_triples(
     return out
 
 
+def partial_candidates(
+    image: np.ndarray, config: StrutDetectorConfig
+) -> tuple[np.ndarray, list[Strut]] | StrutDetection:
+    """LSD segments and strut candidates (longest support first) of a grey (or BGR) image,
+    or a `StrutDetection` with the reason when there are too few."""
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.size == 0 or float(img.max()) <= float(img.min()):
+        return StrutDetection(None, None, np.zeros((0, 4)), reason="empty or uniform image")
+    seg = line_segments(img, config)
+    if len(seg) < 2:
+        return StrutDetection(None, None, seg, reason=f"only {len(seg)} line segments")
+    scaled = img.astype(np.float32) * (255.0 / float(img.max()))
+    cands = sorted(_merge(_bars(scaled, seg, config), config), key=lambda c: -c.support_px)
+    if len(cands) < 3:
+        return StrutDetection(
+            None, None, seg, tuple(cands), reason=f"{len(cands)} strut candidates (need 3)"
+        )
+    return seg, cands
+
+
 def detect_partial(
     image: np.ndarray,
     K: np.ndarray,
@@ -871,6 +894,7 @@ def detect_partial(
     fraction: float,
     config: StrutDetectorConfig | None = None,
     predicted: Rigid3 | None = None,
+    prepared: tuple[np.ndarray, list[Strut]] | StrutDetection | None = None,
 ) -> StrutDetection:
     """The bracket in the paper's view: the base strut ``P1P2`` and the first ``fraction`` of
     the two side struts (the apex hidden), among many other straight edges (solar-cell grid,
@@ -891,6 +915,8 @@ def detect_partial(
         fraction: the visible part of ``P1P5`` and ``P2P5`` (0, 1]; 1: the whole triangle.
         config: detector settings.
         predicted: ``left_cam_from_target`` predicted for this frame, or None.
+        prepared: `partial_candidates` of this image and config (several calls on one
+            image), or None.
 
     Returns:
         A `StrutDetection`; ``observation`` None with a ``reason`` when refused.
@@ -898,20 +924,10 @@ def detect_partial(
     cfg = StrutDetectorConfig() if config is None else config
     if not 0 < fraction <= 1:
         raise ValueError(f"fraction must be in (0, 1], got {fraction}")
-    img = np.asarray(image)
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    if img.size == 0 or float(img.max()) <= float(img.min()):
-        return StrutDetection(None, None, np.zeros((0, 4)), reason="empty or uniform image")
-    seg = line_segments(img, cfg)
-    if len(seg) < 2:
-        return StrutDetection(None, None, seg, reason=f"only {len(seg)} line segments")
-    scaled = img.astype(np.float32) * (255.0 / float(img.max()))
-    cands = sorted(_merge(_bars(scaled, seg, cfg), cfg), key=lambda c: -c.support_px)
-    if len(cands) < 3:
-        return StrutDetection(
-            None, None, seg, tuple(cands), reason=f"{len(cands)} strut candidates (need 3)"
-        )
+    prep = partial_candidates(image, cfg) if prepared is None else prepared
+    if isinstance(prep, StrutDetection):
+        return prep
+    seg, cands = prep
     geo = BracketGeometry(
         vertices_m=geometry.vertices_m,
         vertex_sigma_m=geometry.vertex_sigma_m,
@@ -1101,16 +1117,17 @@ class PartialTracker:
     def step(self, k: int, image: np.ndarray) -> StrutDetection:
         """Detect in frame ``k`` (increasing) of the undistorted grey ``image``."""
         cfg = self.config
+        prep = partial_candidates(image, cfg)  # once per frame for every call below
         if self.track is not None:
             det = detect_partial(
-                image, self.K, self.geometry, self.fraction, cfg, self.track.predict(k)
+                image, self.K, self.geometry, self.fraction, cfg, self.track.predict(k), prep
             )
             if det.result is not None and det.result.pose is not None:
                 self.track.poses.append((k, det.result.pose))
                 return det
             self.track = None  # lost: search afresh
             self.candidates = []
-        det = detect_partial(image, self.K, self.geometry, self.fraction, cfg)
+        det = detect_partial(image, self.K, self.geometry, self.fraction, cfg, None, prep)
         if det.observation is not None and det.result is not None and det.result.pose is not None:
             self.track = _Track([(k, det.result.pose)], det)
             self.candidates = []
