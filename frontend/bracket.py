@@ -188,6 +188,10 @@ class BracketConfig:
             the apex is ill-defined (bracket seen edge-on) and the frame is refused.
         max_depth_cost_m: a solution whose eq. 9 residual norm exceeds this is refused [m].
         covariance: propagate the pixel and vertex errors to a 6x6 pose covariance.
+        prior_least_squares: with ``prior_depths``, minimise eq. 9 by Levenberg-Marquardt
+            from the prior (the nearest exact root, or, where noise has turned two nearby
+            roots complex, their least-squares point) instead of taking the nearest real
+            root; falls back to the real roots if that is not admissible.
         ant: ant-colony settings.
     """
 
@@ -195,6 +199,7 @@ class BracketConfig:
     min_strut_angle_deg: float = 2.0
     max_depth_cost_m: float = 0.05
     covariance: bool = True
+    prior_least_squares: bool = False
     ant: AntColonyConfig = field(default_factory=AntColonyConfig)
 
     def __post_init__(self) -> None:
@@ -947,6 +952,16 @@ def solve_bracket(
             ok = min(d1, d2, d5) > 0 and 0 < s4 < 1 and 0 < s3 < 1
             fr.append((s4, s3) if ok else None)
         admissible = [(c, f) for c, f in zip(cands, fr, strict=True) if f is not None]
+        ls_index = None
+        if prior_depths is not None and cfg.prior_least_squares:
+            q_arr = np.asarray(prior_depths, dtype=float)
+            d_ls = refine_depths(q_arr[None], rays[None], sides[None], 30)[0]
+            s4 = lam4 * d_ls[0] / (lam4 * d_ls[0] + (1 - lam4) * d_ls[2])
+            s3 = lam3 * d_ls[1] / (lam3 * d_ls[1] + (1 - lam3) * d_ls[2])
+            res_ls = float(np.linalg.norm(depth_residual(d_ls, rays, sides)))
+            if d_ls.min() > 0 and 0 < s4 < 1 and 0 < s3 < 1 and res_ls <= cfg.max_depth_cost_m:
+                admissible.append((d_ls.tolist(), (s4, s3)))
+                ls_index = len(admissible) - 1
         solve_s = time.process_time() - c0
         if not admissible:
             return BracketResult(
@@ -972,6 +987,8 @@ def solve_bracket(
         else:
             best = 0
             selected_by = "first"
+        if ls_index is not None:
+            best, selected_by = ls_index, "prior-least-squares"
         d = np.array(admissible[best][0])
     else:
         generator = np.random.default_rng(0) if rng is None else rng

@@ -16,6 +16,11 @@
    struts as ``p4``, ``p3``, with ``sigma_px`` from the scatter of the supporting segment
    endpoints about the fitted centre lines.
 
+The paper's view (base strut and the first part of the side struts, the apex hidden behind a
+solar array with its own grid of straight lines): `detect_partial` (hypothesise and verify
+with the known visible fraction and strut width; an ambiguous frame is refused) and
+`PartialTracker` (the labelling settled over frames); docs/bracket.md, "The paper's view".
+
 No truth is read: only the image, the intrinsics and the bracket's known geometry.
 """
 
@@ -23,7 +28,8 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, field
+from collections import Counter
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -72,6 +78,25 @@ class StrutDetectorConfig:
         relabel_angle_deg: two hypotheses whose attitudes differ by more than this are
             different labellings (the same labelling from two pieces of one strut differs by
             a few degrees).
+        base_candidates: paper's view (`detect_partial`): the longest this many candidates
+            are tried as the base strut.
+        stub_candidates: paper's view: at each end of a base, the this many candidates
+            starting nearest that end are tried as its side strut.
+        end_sigma_px, end_sigma_rel: paper's view: the noise of a visible strut end along its
+            strut (where the array hides it), ``end_sigma_px + end_sigma_rel * length`` [px].
+        max_end_chi: a hypothesis whose visible strut ends lie farther than this many of those
+            sigmas from where the known visible fraction puts them is rejected.
+        width_ratio_range: measured over predicted (``f 2 r / z``) strut width allowed (edge
+            detection on a shaded cylinder measures it narrower than its silhouette).
+        max_width_spread: the three struts' log width ratios may differ from their mean by at
+            most this (one scale for all three).
+        gate_deg, gate_rel: tracking: a pose farther than ``gate_deg`` in attitude or
+            ``gate_rel`` x range (+ 2 cm) in position from the predicted (or reference) pose
+            is refused ("departs from the prediction").
+        rival_deg, rival_rel: paper's view without a prediction: a second consistent
+            hypothesis (another labelling, or another P3P solution of the same labelling)
+            whose pose differs from the best by more than ``rival_deg`` in attitude or
+            ``rival_rel`` x range in position makes the frame ambiguous (refused).
     """
 
     blur_sigma_px: float = 1.2
@@ -88,6 +113,17 @@ class StrutDetectorConfig:
     yoke_weight: float = 2.0
     min_yoke_margin: float = 0.25
     relabel_angle_deg: float = 30.0
+    base_candidates: int = 150
+    stub_candidates: int = 4
+    end_sigma_px: float = 3.0
+    end_sigma_rel: float = 0.05
+    max_end_chi: float = 3.0
+    width_ratio_range: tuple[float, float] = (0.35, 1.8)
+    max_width_spread: float = 0.35
+    gate_deg: float = 15.0
+    gate_rel: float = 0.25
+    rival_deg: float = 8.0
+    rival_rel: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -121,6 +157,10 @@ class StrutDetection:
         candidates: every strut candidate.
         result: the pose solved while choosing the hypothesis (no covariance), or None.
         reason: why ``observation`` is None ("" when found).
+        hypotheses: how many hypotheses were solved.
+        alternatives: `detect_partial` without a prediction: one detection per distinct
+            consistent pose, best first (several: the frame is refused as ambiguous; they
+            are the candidates `PartialTracker` follows over frames).
     """
 
     observation: BracketObservation | None
@@ -130,6 +170,7 @@ class StrutDetection:
     result: BracketResult | None = None
     reason: str = ""
     hypotheses: int = field(default=0)
+    alternatives: tuple[StrutDetection, ...] = ()
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -206,8 +247,9 @@ def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> li
     img = cv2.GaussianBlur(img, (0, 0), config.blur_sigma_px)
 
     def sample(p: np.ndarray) -> float:
-        x = int(np.clip(round(p[0]), 0, w - 1))
-        y = int(np.clip(round(p[1]), 0, h - 1))
+        # nearest pixel, clipped (Python scalars: np.clip per call dominated the search time)
+        x = min(max(round(float(p[0])), 0), w - 1)
+        y = min(max(round(float(p[1])), 0), h - 1)
         return float(img[y, x])
 
     p = seg[:, :2]
@@ -216,10 +258,7 @@ def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> li
     length = np.linalg.norm(d, axis=1)
     u = d / length[:, None]
     bars: list[Strut] = []
-    cos_max = math.cos(math.radians(config.max_angle_deg))
-    for i, j in itertools.combinations(range(len(seg)), 2):
-        if abs(float(u[i] @ u[j])) < cos_max:
-            continue
+    for i, j in _parallel_pairs(p, q, u, length, config):
         ui = u[i]
         n = np.array([-ui[1], ui[0]])
         mid_j = 0.5 * (p[j] + q[j])
@@ -257,6 +296,34 @@ def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> li
             )
         )
     return bars
+
+
+def _parallel_pairs(
+    p: np.ndarray, q: np.ndarray, u: np.ndarray, length: np.ndarray, config: StrutDetectorConfig
+) -> list[tuple[int, int]]:
+    """Index pairs ``i < j`` of segments that are parallel within ``max_angle_deg``, whose
+    separation is within ``bar_width_px`` and that overlap along ``i`` by at least half the
+    shorter one: the cheap tests of `_bars`, in numpy, in the order of
+    ``itertools.combinations`` (a solar array's cell grid gives thousands of segments)."""
+    n = len(p)
+    if n < 2:
+        return []
+    cos_max = math.cos(math.radians(config.max_angle_deg))
+    out: list[tuple[int, int]] = []
+    normal = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    mid = 0.5 * (p + q)
+    for i in range(n - 1):
+        j = np.arange(i + 1, n)
+        ok = np.abs(u[j] @ u[i]) >= cos_max
+        sep = np.abs((mid[j] - p[i]) @ normal[i])
+        ok &= (sep >= config.bar_width_px[0]) & (sep <= config.bar_width_px[1])
+        a = (p[j] - p[i]) @ u[i]
+        b = (q[j] - p[i]) @ u[i]
+        lo = np.maximum(0.0, np.minimum(a, b))
+        hi = np.minimum(length[i], np.maximum(a, b))
+        ok &= hi - lo >= 0.5 * np.minimum(length[i], length[j]) - 1e-9
+        out.extend((i, int(k)) for k in j[ok])
+    return out
 
 
 def _merge(bars: list[Strut], config: StrutDetectorConfig) -> list[Strut]:
@@ -516,7 +583,25 @@ def detect_struts(
         obs = _observation(base, s1, s2, cfg)
         if obs is None:
             return StrutDetection(None, None, seg, tuple(cands), reason="struts parallel")
-        res = solve_bracket(obs, geometry, K, solver)
+        # among several P3P solutions the one nearest the prediction's depths (z of P1, P2, P5)
+        res = solve_bracket(
+            obs, geometry, K, solver, prior_depths=predicted.apply(geometry.vertices_m)[:, 2]
+        )
+        if res.pose is not None and not _within_gate(
+            res.pose, predicted, cfg, geometry.vertices_m.mean(axis=0)
+        ):
+            # the candidates nearest the projected struts gave a pose the motion cannot
+            # explain (a neighbouring edge taken for a strut): refused, the caller searches
+            ang, dist = _pose_distance(res.pose, predicted, geometry.vertices_m.mean(axis=0))
+            return StrutDetection(
+                None,
+                None,
+                seg,
+                tuple(cands),
+                reason=f"tracked pose departs from the prediction by {ang:.1f} deg, "
+                f"{1e3 * dist:.0f} mm",
+                hypotheses=1,
+            )
         return StrutDetection(obs, (base, s1, s2), seg, tuple(cands), res, res.reason, 1)
     best_det: StrutDetection | None = None
     best_score = -math.inf
@@ -564,6 +649,25 @@ def detect_struts(
             reason=f"no consistent bracket among {len(top)} strut candidates ({tried} tried)",
         )
     if (
+        reference is not None
+        and best_det.result is not None
+        and best_det.result.pose is not None
+        and not _within_gate(best_det.result.pose, reference, cfg, geometry.vertices_m.mean(axis=0))
+    ):
+        # the re-detection's closest labelling is still far from the last pose: no
+        # labelling in this frame is consistent with the track (seen: 342 mm / 21 deg)
+        ang, dist = _pose_distance(
+            best_det.result.pose, reference, geometry.vertices_m.mean(axis=0)
+        )
+        return StrutDetection(
+            None,
+            None,
+            seg,
+            tuple(cands),
+            reason=f"re-detection departs from the last pose by {ang:.1f} deg, {1e3 * dist:.0f} mm",
+            hypotheses=tried,
+        )
+    if (
         reference is None
         and cfg.yoke_weight > 0
         and best_det.result is not None
@@ -596,3 +700,477 @@ def _labelling_margin(best: Rigid3, scored: list[tuple[float, Rigid3]], angle_de
     own = max((r for r, pose in scored if _rotation_deg(pose, best) <= angle_deg), default=0.0)
     other = [r for r, pose in scored if _rotation_deg(pose, best) > angle_deg]
     return own - max([0.0, *other])
+
+
+# --- the paper's view: base strut and two stubs, the apex hidden -------------------------------
+
+
+def _strut_widths_predicted(
+    pose: Rigid3,
+    struts: tuple[Strut, Strut, Strut],
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    radius_m: float,
+) -> np.ndarray:
+    """Apparent width ``f 2 r / z`` [px] of each strut at the middle of its detected part,
+    ``z`` where that pixel's ray meets the posed strut's axis."""
+    P = pose.apply(geometry.vertices_m)
+    K_inv = np.linalg.inv(K)
+    f = float(K[0, 0])
+    out = []
+    for strut, (a, b) in zip(struts, ((0, 1), (0, 2), (1, 2)), strict=True):
+        mid = 0.5 * (strut.end(0) + strut.end(1))
+        w = K_inv @ np.array([mid[0], mid[1], 1.0])
+        A = np.stack([w, -(P[b] - P[a])], axis=1)
+        sol, *_ = np.linalg.lstsq(A, P[a], rcond=None)
+        z = float((sol[0] * w)[2])
+        out.append(f * 2 * radius_m / z if z > 0 else math.nan)
+    return np.array(out)
+
+
+def _verify(
+    obs: BracketObservation,
+    struts: tuple[Strut, Strut, Strut],
+    pose: Rigid3,
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    fraction: float,
+    radius_m: float | None,
+    cfg: StrutDetectorConfig,
+) -> tuple[float, str]:
+    """Consistency of a solved hypothesis with the known geometry: ``(cost, "")`` or
+    ``(inf, why)``. The cost sums the squared normalised misfits of the visible strut ends
+    (where the known visible fraction puts them, along each strut) and of the strut widths
+    (one common scale: ``f 2 r / z``)."""
+    if not _face_ok(pose, geometry, cfg.face_sign):
+        return math.inf, "camera on the bracket's wrong face"
+    v = geometry.vertices_m
+    cost = 0.0
+    if fraction < 1.0:
+        ends = np.array([v[0] + fraction * (v[2] - v[0]), v[1] + fraction * (v[2] - v[1])])
+        pix = project(pose, ends, K)
+        for strut, start, e_pred in (
+            (struts[1], obs.p1_px, pix[0]),
+            (struts[2], obs.p2_px, pix[1]),
+        ):
+            assert start is not None
+            _, far = _oriented(strut, start)
+            length = float(np.linalg.norm(far - start))
+            if length < 1.0:
+                return math.inf, "a side strut shorter than 1 px"
+            u = (far - start) / length
+            sigma = cfg.end_sigma_px + cfg.end_sigma_rel * length
+            e = float((far - e_pred) @ u) / sigma
+            if abs(e) > cfg.max_end_chi:
+                return math.inf, f"a visible strut end is {abs(e):.1f} sigma off the fraction"
+            cost += e * e
+    if radius_m is not None:
+        pred = _strut_widths_predicted(pose, struts, geometry, K, radius_m)
+        if not np.all(np.isfinite(pred)) or np.any(pred <= 0):
+            return math.inf, "a strut behind the camera"
+        lr = np.log(np.maximum([s.width_px for s in struts], 1e-6) / pred)
+        lo, hi = (math.log(x) for x in cfg.width_ratio_range)
+        mean = float(lr.mean())
+        if not lo <= mean <= hi:
+            return math.inf, f"strut width {math.exp(mean):.2f} x the predicted"
+        spread = float(np.max(np.abs(lr - mean)))
+        if spread > cfg.max_width_spread:
+            return math.inf, f"strut widths inconsistent (log spread {spread:.2f})"
+        cost += float(np.sum(((lr - mean) / (cfg.max_width_spread / 2)) ** 2))
+    return cost, ""
+
+
+def _pose_distance(a: Rigid3, b: Rigid3, centre: np.ndarray | None = None) -> tuple[float, float]:
+    """(attitude difference [deg], difference of where the two poses put ``centre``, the
+    bracket's centroid in the target frame [m]; the target origin when None)."""
+    c = np.zeros(3) if centre is None else np.asarray(centre, dtype=float)
+    return _rotation_deg(a, b), float(np.linalg.norm(a.apply(c[None])[0] - b.apply(c[None])[0]))
+
+
+def _within_gate(
+    pose: Rigid3, ref: Rigid3, cfg: StrutDetectorConfig, centre: np.ndarray | None = None
+) -> bool:
+    """``pose`` within ``gate_deg`` and ``gate_rel`` x range (+ 2 cm) of ``ref``, positions and
+    range taken at ``centre`` (target frame)."""
+    c = np.zeros(3) if centre is None else np.asarray(centre, dtype=float)
+    ang, dist = _pose_distance(pose, ref, c)
+    return (
+        ang <= cfg.gate_deg
+        and dist <= cfg.gate_rel * float(np.linalg.norm(ref.apply(c[None])[0])) + 0.02
+    )
+
+
+def _stubs_at(end: np.ndarray, base: Strut, cands: list[Strut], tol: float, n: int) -> list[Strut]:
+    """Candidates that start (one of their ends) within ``tol`` of ``end`` and cross the base
+    at more than 10 deg, nearest first (at most ``n``)."""
+    scored = []
+    for c in cands:
+        if c is base or _angle_between(c.direction, base.direction) < 10.0:
+            continue
+        d = min(float(np.linalg.norm(c.end(0) - end)), float(np.linalg.norm(c.end(1) - end)))
+        if d < tol:
+            scored.append((d, c))
+    scored.sort(key=lambda x: x[0])
+    return [c for _, c in scored[:n]]
+
+
+def _partial_triples(
+    cands: list[Strut],
+    cfg: StrutDetectorConfig,
+    predicted: Rigid3 | None,
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    fraction: float,
+) -> list[tuple[Strut, Strut, Strut]]:
+    """(base, strut from P1, strut from P2) hypotheses: around the projected struts with a
+    predicted pose; else every base among the longest candidates with the candidates starting
+    near its ends, in both labellings (which end is P1)."""
+    if predicted is not None:
+        v = geometry.vertices_m
+        model = np.array(
+            [v[0], v[1], v[0] + fraction * (v[2] - v[0]), v[1] + fraction * (v[2] - v[1])]
+        )
+        pix = project(predicted, model, K)
+        roles = []
+        for a, b in ((0, 1), (0, 2), (1, 3)):
+            d = _unit(pix[b] - pix[a])
+            near = []
+            for c in cands:
+                if _angle_between(c.direction, d) > 4 * cfg.max_angle_deg:
+                    continue
+                cn = np.array([-c.direction[1], c.direction[0]])
+                dist = max(abs(float((pix[a] - c.point) @ cn)), abs(float((pix[b] - c.point) @ cn)))
+                if dist < cfg.track_distance_px:
+                    near.append((dist - 1e-3 * c.support_px, c))
+            near.sort(key=lambda x: x[0])
+            roles.append([c for _, c in near[: cfg.stub_candidates]])
+        return [
+            (b, s1, s2)
+            for b in roles[0]
+            for s1 in roles[1]
+            for s2 in roles[2]
+            if b is not s1 and b is not s2 and s1 is not s2
+        ]
+    out = []
+    for base in cands[: cfg.base_candidates]:
+        tol = cfg.end_tolerance * base.length + 2 * cfg.merge_distance_px
+        at0 = _stubs_at(base.end(0), base, cands, tol, cfg.stub_candidates)
+        at1 = _stubs_at(base.end(1), base, cands, tol, cfg.stub_candidates)
+        for sa in at0:
+            for sb in at1:
+                if sa is sb:
+                    continue
+                out.append((base, sa, sb))
+                out.append((base, sb, sa))
+    return out
+
+
+def partial_candidates(
+    image: np.ndarray, config: StrutDetectorConfig
+) -> tuple[np.ndarray, list[Strut]] | StrutDetection:
+    """LSD segments and strut candidates (longest support first) of a grey (or BGR) image,
+    or a `StrutDetection` with the reason when there are too few."""
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.size == 0 or float(img.max()) <= float(img.min()):
+        return StrutDetection(None, None, np.zeros((0, 4)), reason="empty or uniform image")
+    seg = line_segments(img, config)
+    if len(seg) < 2:
+        return StrutDetection(None, None, seg, reason=f"only {len(seg)} line segments")
+    scaled = img.astype(np.float32) * (255.0 / float(img.max()))
+    cands = sorted(_merge(_bars(scaled, seg, config), config), key=lambda c: -c.support_px)
+    if len(cands) < 3:
+        return StrutDetection(
+            None, None, seg, tuple(cands), reason=f"{len(cands)} strut candidates (need 3)"
+        )
+    return seg, cands
+
+
+def detect_partial(
+    image: np.ndarray,
+    K: np.ndarray,
+    geometry: BracketGeometry,
+    fraction: float,
+    config: StrutDetectorConfig | None = None,
+    predicted: Rigid3 | None = None,
+    prepared: tuple[np.ndarray, list[Strut]] | StrutDetection | None = None,
+) -> StrutDetection:
+    """The bracket in the paper's view: the base strut ``P1P2`` and the first ``fraction`` of
+    the two side struts (the apex hidden), among many other straight edges (solar-cell grid,
+    array and bus edges, glints). Hypothesise and verify: every base candidate with the
+    candidates starting at its ends, both labellings, every admissible P3P solution; a
+    hypothesis stands if the camera is on the known face, the visible strut ends lie where the
+    known ``fraction`` puts them and the strut widths agree with ``f 2 r / z``
+    (``config.strut_radius_m``). Without a prediction, two consistent hypotheses whose poses
+    differ (by more than ``rival_deg`` or ``rival_rel`` x range: another labelling, or
+    another P3P solution) make the frame *refused* as ambiguous. With a prediction (tracking), only
+    candidates near the projected struts are tried and the pose must lie inside the gate
+    around the prediction, else the frame is refused.
+
+    Args:
+        image: grey (or BGR) undistorted image.
+        K: its 3x3 intrinsics.
+        geometry: the bracket (target frame).
+        fraction: the visible part of ``P1P5`` and ``P2P5`` (0, 1]; 1: the whole triangle.
+        config: detector settings.
+        predicted: ``left_cam_from_target`` predicted for this frame, or None.
+        prepared: `partial_candidates` of this image and config (several calls on one
+            image), or None.
+
+    Returns:
+        A `StrutDetection`; ``observation`` None with a ``reason`` when refused.
+    """
+    cfg = StrutDetectorConfig() if config is None else config
+    if not 0 < fraction <= 1:
+        raise ValueError(f"fraction must be in (0, 1], got {fraction}")
+    prep = partial_candidates(image, cfg) if prepared is None else prepared
+    if isinstance(prep, StrutDetection):
+        return prep
+    seg, cands = prep
+    geo = BracketGeometry(
+        vertices_m=geometry.vertices_m,
+        vertex_sigma_m=geometry.vertex_sigma_m,
+        visible_fraction=fraction if fraction < 1 else None,
+    )
+    # least squares from each start: near a double root noise turns the true pair complex
+    solver = BracketConfig(covariance=False, prior_least_squares=True)
+    triples = _partial_triples(cands, cfg, predicted, geo, K, fraction)
+    hyps: list[tuple[float, StrutDetection]] = []
+    why: Counter[str] = Counter()
+    for base, s1, s2 in triples:
+        if not _plausible(base, s1, s2, cfg):
+            why["implausible"] += 1
+            continue
+        obs = _observation(base, s1, s2, cfg)
+        if obs is None:
+            continue
+        try:
+            rays = _apex_rays(obs, K)
+            starts = [*p3p_depths(rays, geo.sides_m)]
+        except (ValueError, np.linalg.LinAlgError, ZeroDivisionError):
+            continue
+        # also from a fronto-parallel guess at the base's scale, and from the prediction
+        starts.append(
+            np.full(3, geo.sides_m[0] / max(float(np.linalg.norm(rays[0] - rays[1])), 1e-9))
+        )
+        if predicted is not None:
+            starts.append(predicted.apply(geo.vertices_m)[:, 2])
+        for d in starts:
+            res = solve_bracket(obs, geo, K, solver, prior_depths=d)
+            if res.pose is None:
+                why[res.reason.split(":")[0]] += 1
+                continue
+            cost, reason = _verify(
+                obs, (base, s1, s2), res.pose, geo, K, fraction, cfg.strut_radius_m, cfg
+            )
+            if not math.isfinite(cost):
+                why[reason.split(" (")[0]] += 1
+                continue
+            if predicted is not None:
+                ang, dist = _pose_distance(res.pose, predicted, geometry.vertices_m.mean(axis=0))
+                gate_m = cfg.gate_rel * float(np.linalg.norm(predicted.t)) + 0.02
+                if ang > cfg.gate_deg or dist > gate_m:
+                    why[f"departs from the prediction by {ang:.0f} deg, {1e3 * dist:.0f} mm"] += 1
+                    continue
+                cost += (ang / cfg.gate_deg) ** 2 + (dist / gate_m) ** 2
+            hyps.append((cost, StrutDetection(obs, (base, s1, s2), seg, tuple(cands), res, "", 0)))
+    if not hyps:
+        detail = "; ".join(f"{k} ({n})" for k, n in why.most_common(2))
+        head = (
+            "tracked struts not consistent with the prediction"
+            if predicted is not None
+            else f"no consistent bracket among {len(cands)} strut candidates"
+        )
+        return StrutDetection(
+            None,
+            None,
+            seg,
+            tuple(cands),
+            reason=f"{head} ({len(triples)} hypotheses{': ' + detail if detail else ''})",
+            hypotheses=len(triples),
+        )
+    hyps.sort(key=lambda h: h[0])
+    best_cost, best = hyps[0]
+    assert best.result is not None and best.result.pose is not None
+    bp = best.result.pose
+    distinct: list[StrutDetection] = []
+    if predicted is None:
+        ctr = geo.vertices_m.mean(axis=0)
+        range_m = float(np.linalg.norm(bp.apply(ctr[None])[0]))
+        # distinct poses at a fine resolution (the tracker follows each of them: merging two
+        # nearby P3P solutions would let a track hop from one to the other) ...
+        for _, h in hyps:
+            assert h.result is not None and h.result.pose is not None
+            p = h.result.pose
+            if all(
+                _rotation_deg(p, q.result.pose) > 1.0
+                or _pose_distance(p, q.result.pose, ctr)[1] > 0.01 * range_m
+                for q in distinct
+                if q.result is not None and q.result.pose is not None
+            ):
+                distinct.append(replace(h, hypotheses=len(triples)))
+        # ... and the frame ambiguous if any of them is a rival of the best
+        rivals = [
+            q
+            for q in distinct[1:]
+            if q.result is not None
+            and q.result.pose is not None
+            and (
+                _rotation_deg(bp, q.result.pose) > cfg.rival_deg
+                or _pose_distance(bp, q.result.pose, ctr)[1] > cfg.rival_rel * range_m
+            )
+        ]
+        if rivals:
+            return StrutDetection(
+                None,
+                None,
+                seg,
+                tuple(cands),
+                reason=(
+                    f"labelling ambiguous: {len(rivals) + 1} consistent poses "
+                    f"(costs {best_cost:.1f} and {hyps[1][0]:.1f})"
+                ),
+                hypotheses=len(triples),
+                alternatives=tuple(distinct),
+            )
+    return StrutDetection(
+        best.observation,
+        best.struts,
+        seg,
+        tuple(cands),
+        best.result,
+        "",
+        len(triples),
+        tuple(distinct),
+    )
+
+
+@dataclass
+class _Track:
+    """Poses ``(frame, left_cam_from_target)`` of one labelling followed over frames, with the
+    detection of its last frame and its consecutive misses."""
+
+    poses: list[tuple[int, Rigid3]]
+    detection: StrutDetection
+    misses: int = 0
+
+    @property
+    def last(self) -> Rigid3:
+        return self.poses[-1][1]
+
+    def predict(self, k: int) -> Rigid3:
+        """Frame ``k``'s pose: constant relative motion from the last two poses when they are
+        one frame apart and ``k`` follows the last, else the last pose."""
+        (k1, p1) = self.poses[-1]
+        if len(self.poses) >= 2 and k == k1 + 1 and self.poses[-2][0] == k1 - 1:
+            p0 = self.poses[-2][1]
+            return (p1 @ p0.inverse()) @ p1
+        return p1
+
+
+class PartialTracker:
+    """Frame-to-frame `detect_partial` with the labelling settled over frames.
+
+    One frame of the paper's view often fits several poses (the P3P solutions of ``p1, p2``
+    and the apex, told apart only weakly by where the visible strut ends lie, and the
+    labellings of a near-symmetric bracket): such a frame is refused. Each distinct consistent
+    pose of a frame is associated with the candidate track whose predicted pose is nearest
+    (inside the gate), or starts a new candidate; a candidate without a consistent pose in
+    ``max_misses`` frames in a row is dropped. A candidate is adopted, and reported from that
+    frame on, when it has been followed over at least ``min_frames`` frames and every other
+    candidate has been dropped (while two live on, both explain every frame so far: nothing
+    is reported). A frame whose search
+    finds a single consistent pose is adopted at once. An adopted track is followed with its
+    prediction (`detect_partial` with ``predicted``); when lost, the search starts afresh.
+
+    Args:
+        K: 3x3 intrinsics of the undistorted images.
+        geometry: the bracket (target frame).
+        fraction: visible part of the side struts (0, 1].
+        config: detector settings.
+        min_frames: see above.
+        max_misses: see above.
+        max_candidates: at most this many candidate tracks (the best-scoring new ones).
+    """
+
+    def __init__(
+        self,
+        K: np.ndarray,
+        geometry: BracketGeometry,
+        fraction: float,
+        config: StrutDetectorConfig | None = None,
+        min_frames: int = 3,
+        max_misses: int = 2,
+        max_candidates: int = 8,
+    ) -> None:
+        self.K = np.asarray(K, dtype=float)
+        self.geometry = geometry
+        self.fraction = fraction
+        self.config = StrutDetectorConfig() if config is None else config
+        self.min_frames = min_frames
+        self.max_misses = max_misses
+        self.max_candidates = max_candidates
+        self.track: _Track | None = None
+        self.candidates: list[_Track] = []
+
+    def step(self, k: int, image: np.ndarray) -> StrutDetection:
+        """Detect in frame ``k`` (increasing) of the undistorted grey ``image``."""
+        cfg = self.config
+        prep = partial_candidates(image, cfg)  # once per frame for every call below
+        if self.track is not None:
+            det = detect_partial(
+                image, self.K, self.geometry, self.fraction, cfg, self.track.predict(k), prep
+            )
+            if det.result is not None and det.result.pose is not None:
+                self.track.poses.append((k, det.result.pose))
+                return det
+            self.track = None  # lost: search afresh
+            self.candidates = []
+        det = detect_partial(image, self.K, self.geometry, self.fraction, cfg, None, prep)
+        if det.observation is not None and det.result is not None and det.result.pose is not None:
+            self.track = _Track([(k, det.result.pose)], det)
+            self.candidates = []
+            return det
+        free = list(det.alternatives)
+        ctr = self.geometry.vertices_m.mean(axis=0)
+        for t in self.candidates:
+            pred = t.predict(k)
+            near = [
+                (sum(_pose_distance(a.result.pose, pred, ctr)), a)
+                for a in free
+                if a.result is not None
+                and a.result.pose is not None
+                and _within_gate(a.result.pose, pred, cfg, ctr)
+            ]
+            if near:
+                a = min(near, key=lambda x: x[0])[1]
+                free = [x for x in free if x is not a]
+                assert a.result is not None and a.result.pose is not None
+                t.poses.append((k, a.result.pose))
+                t.detection, t.misses = a, 0
+            else:
+                t.misses += 1
+        self.candidates = [t for t in self.candidates if t.misses < self.max_misses]
+        for a in free:
+            if len(self.candidates) >= self.max_candidates:
+                break
+            assert a.result is not None and a.result.pose is not None
+            self.candidates.append(_Track([(k, a.result.pose)], a))
+        hit = [t for t in self.candidates if t.misses == 0 and t.poses[-1][0] == k]
+        if hit:
+            oldest = max(hit, key=lambda t: len(t.poses))
+            age = len(oldest.poses)
+            if age >= self.min_frames and len(self.candidates) == 1:
+                self.track, self.candidates = oldest, []
+                return oldest.detection
+        if not det.alternatives:
+            return det
+        return StrutDetection(
+            None,
+            None,
+            det.segments,
+            det.candidates,
+            reason=f"{det.reason}; {len(self.candidates)} candidate tracks not yet settled",
+            hypotheses=det.hypotheses,
+        )

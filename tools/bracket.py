@@ -5,6 +5,10 @@ bracket pose with its covariance (`satpose.frontend.bracket`), then smooth the p
 with the backend's constant-twist smoother (loosely coupled). The bracket geometry comes from
 target.yaml: ``bracket`` if present, else ``solar_brackets[--side]`` (a known-geometry method
 reads only the geometry it needs). Ground truth, if present, is used only for the report.
+A ``bracket`` entry (the paper's view: ``visible_fraction`` and the struts' diameter
+``bracket_strut_width_m``) is measured with `satpose.frontend.bracket_lines.PartialTracker`
+(base strut and stubs, labelling settled over frames, ambiguous frames refused);
+``solar_brackets`` (whole triangle with its yoke) with ``detect_struts``.
 
 DIR (written to a temporary folder, then renamed):
 
@@ -30,6 +34,7 @@ import logging
 import math
 import shutil
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +52,12 @@ from satpose.frontend.bracket import (
     solve_bracket,
     to_frame_measurements,
 )
-from satpose.frontend.bracket_lines import StrutDetection, StrutDetectorConfig, detect_struts
+from satpose.frontend.bracket_lines import (
+    PartialTracker,
+    StrutDetection,
+    StrutDetectorConfig,
+    detect_struts,
+)
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
 from satpose.frontend.preprocess import Undistorter
 from satpose.tools.badframes import BadFrames
@@ -86,6 +96,28 @@ def bracket_from_target(seq: Sequence, side: int) -> tuple[BracketGeometry, floa
             f"{path}: solar_brackets[{side}] is not {{P1, P2, P5}} ({exc})"
         ) from None
     return BracketGeometry(vertices_m=v), None
+
+
+def partial_view(seq: Sequence) -> tuple[float, float | None] | None:
+    """``(visible fraction, strut radius [m] or None)`` when target.yaml describes the bracket
+    for the paper's view (a ``bracket`` entry: its ``visible_fraction``, and the struts'
+    diameter ``bracket_strut_width_m``), else None (``solar_brackets``: the whole triangle
+    with its yoke, `detect_struts`)."""
+    if seq.target is None or seq.target.bracket is None:
+        return None
+    path = seq.root / "target.yaml"
+    width = seq.target.extras.get("bracket_strut_width_m")
+    if width is None:
+        return seq.target.bracket.visible_fraction, None
+    try:
+        w = float(width)
+    except (TypeError, ValueError):
+        raise BracketRunError(
+            f"{path}: bracket_strut_width_m must be a number, got {width!r}"
+        ) from None
+    if not (math.isfinite(w) and w > 0):
+        raise BracketRunError(f"{path}: bracket_strut_width_m must be positive, got {w}")
+    return seq.target.bracket.visible_fraction, w / 2
 
 
 def draw_overlay(
@@ -141,6 +173,7 @@ def run_bracket(
     detector: StrutDetectorConfig | None = None,
     angular_noise: float = 1e-5,
     linear_noise: float = 2e-4,
+    require_pose: bool = True,
 ) -> dict[str, Any]:
     """Run the bracket method on a mono (or stereo: left image only) sequence; see the module
     docstring for the files. Returns a summary (frames with a pose, RMS errors if truth).
@@ -148,7 +181,10 @@ def run_bracket(
     ``angular_noise`` [rad/s^2/sqrt(Hz)] and ``linear_noise`` [m/s^2/sqrt(Hz)] set the
     smoother's constant-twist prior (`satpose.backend.MotionConfig`). The angular default is
     10x the backend's: with 1 s between frames the backend's 1e-5 makes iSAM2's system
-    indeterminate at the first twist (seen on `bracket-final`)."""
+    indeterminate at the first twist (seen on `bracket-final`).
+
+    A sequence without any pose is an error unless ``require_pose`` is False (benchmarks:
+    then the trajectories are empty and points.csv holds every frame's reason)."""
     seq = load_sequence(sequence_path)
     check_out(out, overwrite, error=BracketRunError)
     geo, fraction = bracket_from_target(seq, side)
@@ -158,7 +194,13 @@ def run_bracket(
     und = Undistorter(cam)
     K = cam.K
     det_cfg = StrutDetectorConfig() if detector is None else detector
+    partial = partial_view(seq)
+    tracker: PartialTracker | None = None
+    if partial is not None:
+        det_cfg = replace(det_cfg, strut_radius_m=partial[1])
     solver = BracketConfig()
+    if partial is not None:
+        tracker = PartialTracker(K, geo, partial[0], det_cfg)
     bad = BadFrames(seq.root)
     with staged_output(out, overwrite, error=BracketRunError) as stage:
         (stage / "overlay").mkdir()
@@ -188,6 +230,16 @@ def run_bracket(
                         det = StrutDetection(
                             None, None, np.zeros((0, 4)), reason=f"image {prep.problem}"
                         )
+                    elif tracker is not None:
+                        det = tracker.step(k, prep.gray8)
+                        if det.observation is not None and det.result is not None:
+                            result = solve_bracket(
+                                det.observation,
+                                geo,
+                                K,
+                                replace(solver, prior_least_squares=True),
+                                prior_depths=det.result.depths_m,
+                            )
                     else:
                         predicted = prev.pose if prev is not None else None
                         det = detect_struts(prep.gray8, K, geo, det_cfg, predicted=predicted)
@@ -244,8 +296,12 @@ def run_bracket(
             w = csv.writer(fh)
             w.writerow(POINT_COLUMNS)
             w.writerows(rows)
+        if not per_frame and require_pose:
+            raise BracketRunError(
+                f"{sequence_path}: no frame gave a bracket pose ({refusal_summary(frames)})"
+            )
         if not per_frame:
-            raise BracketRunError(f"{sequence_path}: no frame gave a bracket pose")
+            estimator = "none"  # nothing to smooth: empty trajectories, the reasons written
         write_tum([t for t, _ in per_frame], [p for _, p in per_frame], stage / "per_frame.tum")
         smoothed: dict[int, Rigid3] = {}
         if estimator != "none":
@@ -393,3 +449,60 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.set_defaults(handler=_handler)
+
+
+def render_family_member(args: argparse.Namespace) -> None:
+    """``satpose render bracket-random --seed N --out DIR [--frames N] [--size WxH]``: one
+    member of the bracket family (`satpose.datasets.bracket_family`)."""
+    import sys
+    import time
+
+    from tqdm import tqdm
+
+    from satpose.datasets.bracket_family import (
+        BRACKET_RANDOM_NAME,
+        DEFAULT_FRAMES,
+        DEFAULT_SIZE,
+        TUNING_SEEDS,
+        VALIDATION_SEEDS,
+        BracketFamilyError,
+        render_bracket_sequence,
+        split_of,
+    )
+
+    if args.seed is None:
+        raise BracketFamilyError(
+            f"render {BRACKET_RANDOM_NAME} needs --seed N (tuning seeds {TUNING_SEEDS.start}-"
+            f"{TUNING_SEEDS.stop - 1}, validation seeds {VALIDATION_SEEDS.start}-"
+            f"{VALIDATION_SEEDS.stop - 1})"
+        )
+    for flag in ("spp", "config"):
+        if getattr(args, flag, None) is not None:
+            raise BracketFamilyError(
+                f"render {BRACKET_RANDOM_NAME}: --{flag} does not apply (a numpy ray caster "
+                "with 2x2 samples per pixel; the scene is the seed's)"
+            )
+    frames = args.frames or DEFAULT_FRAMES
+    size = args.size or DEFAULT_SIZE
+    start = time.perf_counter()
+    with tqdm(
+        total=frames,
+        desc=f"render {BRACKET_RANDOM_NAME} {args.seed}",
+        unit="frame",
+        file=sys.stderr,
+        dynamic_ncols=True,
+        delay=0.5,
+    ) as bar:
+        render_bracket_sequence(
+            args.seed,
+            args.out,
+            frames=frames,
+            size=size,
+            overwrite=args.overwrite,
+            progress=lambda _k: bar.update(1),
+        )
+    elapsed = time.perf_counter() - start
+    print(
+        f"wrote {frames} mono frames ({size[0]}x{size[1]}) of {BRACKET_RANDOM_NAME} seed "
+        f"{args.seed} ({split_of(args.seed)} set) to {args.out} in {elapsed:.1f} s"
+    )

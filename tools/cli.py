@@ -88,10 +88,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "preset",
-        choices=scenario_names(),
+        choices=[*scenario_names(), "bracket-random"],
         metavar="PRESET",
-        help=f"one of: {', '.join(scenario_names())} (random: a different satellite and "
-        "scene per --seed, docs/renderer.md 'Random family')",
+        help=f"one of: {', '.join(scenario_names())}, bracket-random (random: a different "
+        "satellite and scene per --seed, docs/renderer.md 'Random family'; bracket-random: a "
+        "different bracket in the paper's view per --seed, docs/bracket.md)",
     )
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output sequence folder")
     _render_args(p)
@@ -241,6 +242,11 @@ def _render(scenario: Scenario, out: Path, overwrite: bool) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> None:
+    if args.preset == "bracket-random":
+        from satpose.tools.bracket import render_family_member
+
+        render_family_member(args)
+        return
     _render(_scenario_from_args(args), args.out, args.overwrite)
 
 

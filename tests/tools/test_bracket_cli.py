@@ -118,3 +118,26 @@ def test_refusal_summary_counts_reasons() -> None:
         "image (1), 2 other reasons"
     )
     assert refusal_summary([]) == ""
+
+
+def test_render_bracket_random_and_bad_strut_width(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`satpose render bracket-random` writes a mono sequence with the bracket and its strut
+    width in target.yaml; a non-positive width is a one-line error naming file and field;
+    a seed outside both sets is refused."""
+    import yaml
+
+    seq = tmp_path / "fam"
+    args = ["render", "bracket-random", "--seed", "1", "--frames", "2", "--size", "160x128"]
+    assert main([*args, "--out", str(seq)]) == 0
+    target = yaml.safe_load((seq / "target.yaml").read_text())
+    assert set(target["bracket"]) >= {"P1", "P2", "P5", "visible_fraction"}
+    assert target["bracket_strut_width_m"] > 0
+    target["bracket_strut_width_m"] = -0.01
+    (seq / "target.yaml").write_text(yaml.safe_dump(target))
+    capsys.readouterr()
+    assert main(["bracket", str(seq), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "target.yaml" in err[0] and "bracket_strut_width_m" in err[0]
+    assert main(["render", "bracket-random", "--seed", "500", "--out", str(tmp_path / "x")]) == 2
