@@ -44,6 +44,7 @@ from satpose.datasets.errors import SatposeError
 from satpose.datasets.events import Events
 from satpose.datasets.geometry import matrix_to_rotvec, rotvec_to_matrix
 from satpose.datasets.sky import radec_to_unit
+from satpose.frontend.star_events import stream_noise
 
 ARCSEC = math.pi / (180 * 3600)
 
@@ -773,6 +774,19 @@ class StarTrackerConfig:
             residuals when that exceeds 1.
         mag_limit: faintest catalogue star predicted in tracking.
         epoch_yr: epoch of the solver catalogue.
+        noise_window_s: background-activity filter: an event is used by the centroids,
+            blobs and spot fit only if a neighbouring pixel fired within this time of it
+            (`star_events.correlated_events`; 0: off).
+        gate_spot_rms: the tracking gate's radius is at least this many times the star
+            image's measured size (`StarTracker.spot_rms_px`: RMS distance of a star's
+            events from their centroid, measured right after an acquisition).
+        hot_pixel_ratio: pixels with more than this many times the events of every
+            neighbour are dropped from the stream (`star_events.hot_pixels`; 0: off).
+        shrink_rate: shrink the predicted rate towards zero by its own noise
+            (`StarTracker.body_rate_rad_s`; for stares right after an acquisition).
+        static_span_s, static_motion_px: a failed tracking output is retried with spans up
+            to ``static_span_s`` (instead of ``lis_window_s``) while the stars move less
+            than ``static_motion_px`` in it (`StarTracker.max_span_s`).
     """
 
     window_s: float = 0.005
@@ -797,6 +811,12 @@ class StarTrackerConfig:
     scale_by_residuals: bool = True
     mag_limit: float = 7.5
     epoch_yr: float = 2026.9
+    shrink_rate: bool = True
+    noise_window_s: float = 0.01
+    gate_spot_rms: float = 2.2
+    hot_pixel_ratio: float = 4.0
+    static_span_s: float = 0.2
+    static_motion_px: float = 1.0
 
     def __post_init__(self) -> None:
         if not (0 < self.window_s <= self.lis_window_s):
@@ -884,9 +904,10 @@ class StarTracker:
         self._cone_rows = np.zeros(0, dtype=np.int64)
         self._cone_unit = np.zeros((0, 3))
         self.sigma_rad = c.centroid_sigma_px / cam.fx
-        self.history: list[tuple[float, np.ndarray]] = []
+        self.history: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t, R, cov)
         self._rate_src: tuple[np.ndarray, np.ndarray, float, float] | None = None
         self._rate = np.zeros(3)
+        self.spot_rms_px: float | None = None  # measured (`_track_gated`), None until then
 
     # ---- building blocks ------------------------------------------------------------------
 
@@ -946,7 +967,7 @@ class StarTracker:
         """Attitude at ``t_s`` from the last attitude and the rate over recent outputs."""
         if not self.history:
             return None
-        t1, R1 = self.history[-1]
+        t1, R1, _ = self.history[-1]
         return R1 @ rotvec_to_matrix(self.body_rate_rad_s() * (t_s - t1))
 
     def body_rate_rad_s(self) -> np.ndarray:
@@ -954,10 +975,20 @@ class StarTracker:
         if len(self.history) < 2:
             return np.zeros(3)
         k = max(0, len(self.history) - 1 - self.config.rate_history)
-        (t0, R0), (t1, R1) = self.history[k], self.history[-1]
+        (t0, R0, P0), (t1, R1, P1) = self.history[k], self.history[-1]
         src = self._rate_src  # once per output (predict, span, gate, motion all ask)
         if src is None or src[0] is not R0 or src[1] is not R1 or (src[2], src[3]) != (t0, t1):
-            self._rate = matrix_to_rotvec(R0.T @ R1) / (t1 - t0) if t1 > t0 else np.zeros(3)
+            w = matrix_to_rotvec(R0.T @ R1) / (t1 - t0) if t1 > t0 else np.zeros(3)
+            if self.config.shrink_rate and t1 > t0:
+                # The difference of two noisy attitudes: per axis noise variance s^2 =
+                # (var0 + var1) / dt^2. Shrunk towards zero by w^2 / (w^2 + s^2) (the MMSE
+                # factor for a rate of that size): a slew is left as it is, but right after
+                # an acquisition at a stare (outputs 10 ms apart, 20-80 arcsec noise: 2000
+                # arcsec/s of rate noise against 0.05 deg/s) the noise no longer moves the
+                # gates and the centroids (the second event model lost lock every 0.3 s).
+                s2 = (np.diagonal(P0) + np.diagonal(P1)) / (t1 - t0) ** 2
+                w = w * w**2 / np.maximum(w**2 + s2, 1e-30)
+            self._rate = w
             self._rate_src = (R0, R1, t0, t1)  # holds the arrays: their ids stay theirs
         return self._rate
 
@@ -972,6 +1003,19 @@ class StarTracker:
             return c.lis_window_s
         motion = c.min_motion_px * (1.0 if self.rate_settled() else 2.0)
         return float(np.clip(motion / speed, c.window_s, c.lis_window_s))
+
+    def max_span_s(self) -> float:
+        """Longest event span a tracking output may integrate when retried: ``lis_window_s``,
+        or up to ``static_span_s`` while the stars move less than ``static_motion_px`` in it
+        (a stare: jitter around a nearly still sky fires few events, and a longer span
+        blurs nothing)."""
+        c = self.config
+        speed = float(np.linalg.norm(self.body_rate_rad_s())) * self.cam.fx
+        if c.static_span_s <= c.lis_window_s:
+            return c.lis_window_s
+        if speed <= 0:
+            return c.static_span_s
+        return float(np.clip(c.static_motion_px / speed, c.lis_window_s, c.static_span_s))
 
     def rate_settled(self) -> bool:
         """Whether the rate rests on two tracked outputs after the last acquisition (the
@@ -1007,7 +1051,8 @@ class StarTracker:
         if sol.R is None:
             self.history.clear()
         else:
-            self.history.append((sol.t_s, sol.R))
+            cov = np.zeros((3, 3)) if sol.cov is None else sol.cov
+            self.history.append((sol.t_s, sol.R, cov))
             del self.history[: -self.config.rate_history - 1]
         return sol
 
@@ -1088,7 +1133,14 @@ class StarTracker:
         # Until a rate is known (one past attitude) the prediction ignores the motion.
         # The events of a star spread along its path over the span.
         streak = float(np.linalg.norm(self.body_rate_rad_s())) * cam.fx * span_s
-        gate = c.gate_px * (3.0 if len(self.history) < 3 else 1.0) + 0.5 * streak
+        wide = len(self.history) < 3
+        base = c.gate_px
+        if self.spot_rms_px is not None:
+            # A wide (defocused) star's events reach beyond gate_px: a gate that cuts one
+            # side of them pulls the centroid towards the prediction, and the error feeds
+            # back (the second event model's stare: 100 arcsec).
+            base = max(base, c.gate_spot_rms * self.spot_rms_px)
+        gate = base * (3.0 if wide else 1.0) + 0.5 * streak
         g = math.ceil(gate)
         off = np.arange(-g, g + 1)
         cx = np.rint(px[:, 0]).astype(np.int64)
@@ -1118,6 +1170,19 @@ class StarTracker:
         ok = cnt >= c.min_events
         if ok.sum() < c.min_stars:
             return AttitudeSolution(t_mid, None, None, "lost")
+        if wide and streak < 1.0:
+            # The star image's size from the wide gate of an output right after an
+            # acquisition (nothing cut): the median over stars of the events' RMS distance
+            # from their centroid, once the star hardly moves within the span.
+            li = lab[hit] - 1
+            d2 = (ex_f[hit] - cen[li, 0]) ** 2 + (ey_f[hit] - cen[li, 1]) ** 2
+            near = d2 < (c.gate_px * 2.0) ** 2  # not a neighbouring star's events
+            r2 = np.bincount(li[near], weights=d2[near], minlength=rows.size)
+            n2 = np.bincount(li[near], minlength=rows.size)
+            good = ok & (n2 >= 2 * c.min_events)
+            if good.sum() >= c.min_stars:
+                rms = float(np.median(np.sqrt(r2[good] / n2[good])))
+                self.spot_rms_px = rms if self.spot_rms_px is None else max(self.spot_rms_px, rms)
         # Move each centroid to the window centre along the predicted image motion.
         b = bearings(cam, cen[ok])
         w = self.body_rate_rad_s()
@@ -1253,6 +1318,14 @@ def run_event_tracker(
     that whole-stream step."""
     c = tracker.config
     cpu0 = time.process_time()
+    # Hot pixels out of the stream; uncorrelated events (background activity) out of the
+    # centroids, blobs and fit (their levels NaN), but kept for the pixels' level ladders.
+    W, H = tracker.cam.width, tracker.cam.height
+    clean, noise = stream_noise(events, W, H, c.noise_window_s, c.hot_pixel_ratio)
+    if noise.hot_pixels.size:
+        flat = events.y.astype(np.int64) * W + events.x.astype(np.int64)
+        not_hot = ~np.isin(flat, noise.hot_pixels)
+        events, clean = _subset(events, not_hot), clean[not_hot]
     selected = np.ones(len(events), dtype=bool)
     levels: np.ndarray | None = None
     fits = c.centroid == "spot_fit"
@@ -1266,6 +1339,9 @@ def run_event_tracker(
         levels = all_levels if fits else None
         if c.event_selection == "drop_peak":
             selected = ~peak
+    selected &= clean
+    if levels is not None:
+        levels = np.where(clean, levels, np.nan)
     if levels is None:
         events = _subset(events, selected)
         selected = np.ones(len(events), dtype=bool)
@@ -1301,8 +1377,9 @@ def run_event_tracker(
                 # a slow slew): retry the same output with twice the span, up to
                 # lis_window_s, before giving up tracking. Only once the rate is settled
                 # (right after acquisition a failure more likely means a bad rate).
-                while settled and sol.status != "tracking" and span < c.lis_window_s:
-                    span = min(2 * span, c.lis_window_s)
+                max_span = tracker.max_span_s()
+                while settled and sol.status != "tracking" and span < max_span:
+                    span = min(2 * span, max_span)
                     tracker.history[:] = saved
                     ev, sel, lv = window(max(t0_s, b - span), b)
                     sol = tracker.track_events(ev, t, b, span_s=span, levels=lv, selected=sel)

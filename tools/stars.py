@@ -169,6 +169,15 @@ def track_sequence(
         ev = read_events(seq_dir / EVENTS_FILE)
         if len(ev) == 0:
             raise SequenceError(seq_dir / EVENTS_FILE, "events", "no events")
+        outside = (ev.x >= cam.width) | (ev.y >= cam.height)
+        if outside.any():
+            k = int(np.argmax(outside))
+            raise SequenceError(
+                seq_dir / EVENTS_FILE,
+                "events/x,y",
+                f"{int(outside.sum())} events outside the {cam.width}x{cam.height} sensor of "
+                f"calib.yaml (first: x={int(ev.x[k])}, y={int(ev.y[k])})",
+            )
         t1 = ev.t_s[-1] if duration_s is None else min(duration_s, ev.t_s[-1])
         sols = run_event_tracker(tracker, ev, 0.0, float(t1))
     bad = BadFrames(Path(seq_dir))
