@@ -43,7 +43,8 @@ CASES = [
 def run_case(root: Path, preset: str, rate: float, duration: float) -> list[dict[str, object]]:
     seq = root / f"{preset}_{rate:g}"
     s = replace(star_preset(preset), slew_rate_deg_s=rate, duration_s=duration)
-    render_star_sequence(s, seq, overwrite=True)
+    if not (seq / "attitude_truth.csv").is_file():  # --work: rendered by an earlier run
+        render_star_sequence(s, seq, overwrite=True)
     truth = load_attitude_truth(seq / "attitude_truth.csv")
     rows: list[dict[str, object]] = []
     freqs = "/".join(f"{f:g}" for f in s.jitter_freq_hz)
@@ -103,12 +104,16 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true", help="1 s per case, no file written")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument(
+        "--work", type=Path, help="keep the rendered recordings here (reused when present)"
+    )
     args = ap.parse_args()
     t0 = time.process_time()
     rows: list[dict[str, object]] = []
     with tempfile.TemporaryDirectory() as tmp:
+        root = args.work or Path(tmp)
         for preset, rate, duration in CASES:
-            rows += run_case(Path(tmp), preset, rate, 1.0 if args.quick else duration)
+            rows += run_case(root, preset, rate, 1.0 if args.quick else duration)
     total = time.process_time() - t0
     lines = [
         "# Event star tracker on a second event model "

@@ -3,7 +3,8 @@
 - `hot_pixels`: pixels that fire far more than every neighbour (a star lights several
   neighbouring pixels alike; a hot pixel is alone).
 - `correlated_events`: the background-activity filter (Delbruck 2008): an event is kept when
-  one of its 8 neighbours fired within ``window_s`` of it. Noise is uncorrelated in space;
+  one of its 8 neighbours fired at about the same time (same or adjacent ``window_s`` bin).
+  Noise is uncorrelated in space;
   a star's light moves over several pixels together.
 - The star image's size is measured by the tracker itself (`StarTracker.spot_rms_px`).
 
@@ -39,28 +40,41 @@ def hot_pixels(
 
 
 def correlated_events(events: Events, width: int, height: int, window_s: float) -> np.ndarray:
-    """Mask of the events with an event at one of the 8 neighbouring pixels within
-    ``window_s`` (before or after). Costs 8 binary searches over the stream."""
+    """Mask of the events with an event at one of the 8 neighbouring pixels in the same or an
+    adjacent time bin of ``window_s`` (so within ``window_s`` always, within ``2 window_s``
+    at most). Linear in the events plus one 3x3 box sum of the sensor per bin (an exact
+    per-event search cost 8 binary searches of the whole stream: 8 ms per output at
+    6 deg/s)."""
+    import cv2
+
     n = len(events)
     if n == 0:
         return np.zeros(0, dtype=bool)
-    x = events.x.astype(np.int64)
-    y = events.y.astype(np.int64)
-    t = events.t_us - events.t_us[0]
-    span = int(t[-1]) + 1
-    key = (y * width + x) * span + t
-    skey = np.sort(key)
+    flat = events.y.astype(np.int64) * width + events.x.astype(np.int64)
     w_us = max(1, round(window_s * 1e6))
+    b = (events.t_us - events.t_us[0]) // w_us
+    n_bins = int(b[-1]) + 1
+    edges = np.searchsorted(b, np.arange(n_bins + 1))
+    npix = width * height
+
+    def neighbours(k: int) -> np.ndarray:
+        """Events of the 8 neighbours of each pixel in bin k (flat, float32)."""
+        if k < 0 or k >= n_bins or edges[k] == edges[k + 1]:
+            return np.zeros(npix, dtype=np.float32)
+        cnt = np.bincount(flat[edges[k] : edges[k + 1]], minlength=npix).astype(np.float32)
+        img = cnt.reshape(height, width)
+        box = cv2.boxFilter(img, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        return (box - img).ravel()
+
     keep = np.zeros(n, dtype=bool)
-    for dx, dy in _NEIGHBOURS:
-        nx, ny = x + dx, y + dy
-        inside = (nx >= 0) & (nx < width) & (ny >= 0) & (ny < height)
-        base = (ny * width + nx) * span
-        # First event of the neighbour at or after t - w; it must be before t + w.
-        i = np.searchsorted(skey, base + np.maximum(t - w_us, 0))
-        i = np.minimum(i, n - 1)
-        hit = inside & (skey[i] >= base) & (skey[i] <= base + np.minimum(t + w_us, span - 1))
-        keep |= hit
+    prev, cur = np.zeros(npix, dtype=np.float32), neighbours(0)
+    for k in range(n_bins):
+        nxt = neighbours(k + 1)
+        i0, i1 = edges[k], edges[k + 1]
+        if i1 > i0:
+            f = flat[i0:i1]
+            keep[i0:i1] = (prev[f] + cur[f] + nxt[f]) > 0.5
+        prev, cur = cur, nxt
     return keep
 
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 import functools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -452,6 +453,8 @@ class SpotFit:
         n: events used, (S,).
         ok: converged with enough events, (S,).
         d_omega: the shared body-rate correction [rad/s] (zero unless fitted).
+        cost: Huber cost (at 2 sigma, in sigma^2) of all events of the stars with at least
+            4 events, at the solution.
     """
 
     px: np.ndarray
@@ -462,6 +465,7 @@ class SpotFit:
     d_omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
     d_omega_data: np.ndarray = field(default_factory=lambda: np.zeros(3))
     d_omega_info: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    cost: float = 0.0
 
 
 def fit_moving_spots(
@@ -588,6 +592,11 @@ def fit_moving_spots(
     used = ok[lab]
     dof = int(used.sum()) - P * int(ok.sum())
     chi2 = float(np.sum((w * r * r)[used])) / dof if dof > 0 else 1.0
+    # Huber cost (2 sigma) of every event of the stars with enough events: the same events
+    # whatever the PSF, so fits with different PSF sigmas can be compared (`StarTracker`
+    # measures the sigma this way).
+    rs = np.abs(r[fitted[lab]]) * np.sqrt(w0[fitted[lab]])
+    cost = float(np.sum(np.where(rs <= 2.0, rs * rs, 4.0 * rs - 4.0)))
     cov_full = Hinv  # the last iteration's (H is not changed after it)
     if shared:
         # Marginal of each star's unknowns with d_omega unknown too (last linearisation).
@@ -602,7 +611,15 @@ def fit_moving_spots(
         d_data = np.linalg.lstsq(info, red @ d_omega, rcond=None)[0]
         rate_info = info / chi2
     return SpotFit(
-        state[:, :2], state[:, 2], cov_full[:, :2, :2], cnt, ok, d_omega, d_data, rate_info
+        state[:, :2],
+        state[:, 2],
+        cov_full[:, :2, :2],
+        cnt,
+        ok,
+        d_omega,
+        d_data,
+        rate_info,
+        cost if np.isfinite(cost) else math.inf,
     )
 
 
@@ -774,6 +791,9 @@ class StarTrackerConfig:
             residuals when that exceeds 1.
         mag_limit: faintest catalogue star predicted in tracking.
         epoch_yr: epoch of the solver catalogue.
+        psf_outputs: the PSF sigma of the spot fit is measured over the first this many
+            fitted outputs (`StarTracker._measure_psf`; ``psf_sigma_px`` is then only the
+            starting point); 0: ``psf_sigma_px`` is used as it is (calib.yaml states it).
         noise_window_s: background-activity filter: an event is used by the centroids,
             blobs and spot fit only if a neighbouring pixel fired within this time of it
             (`star_events.correlated_events`; 0: off).
@@ -798,7 +818,7 @@ class StarTrackerConfig:
     outlier_sigma: float = 5.0
     rate_history: int = 80
     min_motion_px: float = 0.15
-    event_selection: Literal["matched", "drop_peak", "all"] = "drop_peak"
+    event_selection: Literal["matched", "drop_peak", "all"] = "all"
     centroid: Literal["spot_fit", "balanced"] = "spot_fit"
     contrast_threshold: float = 0.25
     threshold_sigma: float = 0.03
@@ -817,6 +837,7 @@ class StarTrackerConfig:
     hot_pixel_ratio: float = 4.0
     static_span_s: float = 0.2
     static_motion_px: float = 1.0
+    psf_outputs: int = 20
 
     def __post_init__(self) -> None:
         if not (0 < self.window_s <= self.lis_window_s):
@@ -908,6 +929,12 @@ class StarTracker:
         self._rate_src: tuple[np.ndarray, np.ndarray, float, float] | None = None
         self._rate = np.zeros(3)
         self.spot_rms_px: float | None = None  # measured (`_track_gated`), None until then
+        # PSF sigma of the spot fit: the configured one until measured (`_measure_psf`).
+        self.psf_sigma_px = c.psf_sigma_px
+        self._psf_costs: np.ndarray | None = (
+            np.zeros(len(_PSF_FACTORS)) if c.psf_outputs > 0 else None
+        )
+        self._psf_seen = 0
 
     # ---- building blocks ------------------------------------------------------------------
 
@@ -1047,6 +1074,27 @@ class StarTracker:
             self._cone_axis = boresight.copy()
         return self._cone_rows, self._cone_unit
 
+    def _measure_psf(self, run_fit: Callable[[float], SpotFit]) -> None:
+        """The star image's blur from the stream: over the first ``psf_outputs`` spot fits
+        of a run, the fit is repeated with the PSF sigma at each of `_PSF_FACTORS` times the
+        configured one and the Huber costs (`SpotFit.cost`: the same events each time) are
+        summed; then the sigma at the parabola's minimum in log sigma through the best
+        sigma and its two neighbours is used from there on. The model is a Gaussian:
+        for a defocused star it finds the Gaussian that best explains the events' levels."""
+        c = self.config
+        assert self._psf_costs is not None
+        self._psf_costs += [run_fit(c.psf_sigma_px * f).cost for f in _PSF_FACTORS]
+        self._psf_seen += 1
+        if self._psf_seen < c.psf_outputs:
+            return
+        cost, self._psf_costs = self._psf_costs, None
+        k = int(np.clip(np.argmin(cost), 1, cost.size - 2))
+        y0, y1, y2 = cost[k - 1 : k + 2]
+        den = y0 - 2 * y1 + y2
+        step = 0.5 * (y0 - y2) / den if den > 0 else 0.0
+        log_f = math.log(_PSF_FACTORS[k]) + float(np.clip(step, -1, 1)) * math.log(2) / 4
+        self.psf_sigma_px = c.psf_sigma_px * math.exp(log_f)
+
     def _accept(self, sol: AttitudeSolution) -> AttitudeSolution:
         if sol.R is None:
             self.history.clear()
@@ -1170,10 +1218,10 @@ class StarTracker:
         ok = cnt >= c.min_events
         if ok.sum() < c.min_stars:
             return AttitudeSolution(t_mid, None, None, "lost")
-        if wide and streak < 1.0:
-            # The star image's size from the wide gate of an output right after an
-            # acquisition (nothing cut): the median over stars of the events' RMS distance
-            # from their centroid, once the star hardly moves within the span.
+        if len(self.history) == 2 and streak < 1.0:
+            # The star image's size from the wide gate of the second output after an
+            # acquisition (the first with a rate; nothing cut): the median over stars of the
+            # events' RMS distance from their centroid, if the stars hardly move in the span.
             li = lab[hit] - 1
             d2 = (ex_f[hit] - cen[li, 0]) ** 2 + (ey_f[hit] - cen[li, 1]) ** 2
             near = d2 < (c.gate_px * 2.0) ** 2  # not a neighbouring star's events
@@ -1217,28 +1265,34 @@ class StarTracker:
         li = li[use]
         top = np.zeros(int(ok.sum()))
         np.maximum.at(top, li, lvl)
-        g0 = float((2 * ndtr(0.5 / c.psf_sigma_px) - 1) ** 2)
+        sigma_psf = self.psf_sigma_px
+        g0 = float((2 * ndtr(0.5 / sigma_psf) - 1) ** 2)
         C = c.contrast_threshold
         log_flux0 = np.log(np.maximum(np.expm1((top + 0.5) * C), 1e-3) / g0)
         # One body rate for the span's stars, fitted, where the span reaches back over more
         # than one output (slow slews): within it jitter moves the stars at a rate the
         # prediction (0.4 s of outputs) averages away.
         shared_rate = c.fit_rate_sigma_rad_s > 0 and span_s > 1.5 * c.window_s
-        fit = fit_moving_spots(
-            li,
-            ex_f[use],
-            ey_f[use],
-            et[use] - t_mid,
-            lvl * C,
-            px_mid,
-            vel,
-            log_flux0,
-            c.psf_sigma_px,
-            level_sigma(lvl, c.contrast_threshold, c.threshold_sigma),
-            vel_sigma_px_s=c.fit_velocity_sigma_px_s,
-            rate_jac=vel_jac,
-            rate_sigma=c.fit_rate_sigma_rad_s if shared_rate else 0.0,
-        )
+        def run_fit(sigma: float) -> SpotFit:
+            return fit_moving_spots(
+                li,
+                ex_f[use],
+                ey_f[use],
+                et[use] - t_mid,
+                lvl * C,
+                px_mid,
+                vel,
+                log_flux0,
+                sigma,
+                level_sigma(lvl, c.contrast_threshold, c.threshold_sigma),
+                vel_sigma_px_s=c.fit_velocity_sigma_px_s,
+                rate_jac=vel_jac,
+                rate_sigma=c.fit_rate_sigma_rad_s if shared_rate else 0.0,
+            )
+
+        fit = run_fit(sigma_psf)
+        if self._psf_costs is not None and int(fit.ok.sum()) >= c.min_stars:
+            self._measure_psf(run_fit)
         # Fitted stars with the fit's own noise (mean of the two axes' variances, floored);
         # stars the fit could not take (fewer than 4 levelled events: most of them at
         # 0.1 deg/s) keep their moved balanced centroid with centroid_sigma_px.
@@ -1255,6 +1309,11 @@ class StarTracker:
             sol = replace(sol, rate_meas_rad_s=w + fit.d_omega_data, rate_info=fit.d_omega_info)
             w = w + fit.d_omega
         return _at_data_time(sol, star_of[lab[hit]], et[hit], sig**-2.0, w)
+
+
+_PSF_FACTORS = 2.0 ** (np.arange(-2, 5) / 4.0)
+"""PSF sigmas tried by `StarTracker._measure_psf`, relative to the configured one
+(0.71x-2x)."""
 
 
 def _compact_labels(ok: np.ndarray) -> np.ndarray:

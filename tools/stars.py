@@ -54,6 +54,7 @@ class TrackResult:
     cov: np.ndarray
     estimator: str
     bad_frames: BadFrames = field(default_factory=BadFrames)  # frames pipeline only
+    config: StarTrackerConfig | None = None  # the frontend's, calib.yaml's event_sensor applied
 
 
 def open_star_sequence(
@@ -78,6 +79,56 @@ def open_star_sequence(
             "recording runs with --pipeline events)",
         )
     return load_calibration(root / "calib.yaml").left, ()
+
+
+EVENT_SENSOR_KEYS = ("contrast_threshold", "threshold_sigma", "psf_sigma_px")
+"""Keys of the optional ``event_sensor:`` block of calib.yaml or sequence.yaml: the event
+sensor's calibration the spot fit assumes (`StarTrackerConfig` fields of the same names)."""
+
+
+def event_sensor_calibration(seq_dir: Path) -> dict[str, float]:
+    """The ``event_sensor:`` block of ``seq_dir``'s sequence.yaml and calib.yaml (calib.yaml
+    wins where both state a key): ``contrast_threshold`` (mean log-intensity threshold C),
+    ``threshold_sigma`` (its pixel-to-pixel spread), ``psf_sigma_px`` (Gaussian sigma of the
+    star image [px]). Empty when neither states it.
+
+    Raises:
+        SequenceError: an unknown key or a value that is not a positive number (naming the
+            file and key).
+    """
+    out: dict[str, float] = {}
+    for name in ("sequence.yaml", "calib.yaml"):
+        path = Path(seq_dir) / name
+        if not path.is_file():
+            continue
+        try:
+            data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise SequenceError(path, None, f"cannot read ({exc})") from None
+        block = data.get("event_sensor") if isinstance(data, dict) else None
+        if block is None:
+            continue
+        if not isinstance(block, dict):
+            raise SequenceError(path, "event_sensor", "must be a mapping")
+        for key, value in block.items():
+            if key not in EVENT_SENSOR_KEYS:
+                raise SequenceError(
+                    path,
+                    f"event_sensor.{key}",
+                    f"unknown key (known: {', '.join(EVENT_SENSOR_KEYS)})",
+                )
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            if (
+                not ok
+                or not math.isfinite(value)
+                or value < 0
+                or (value == 0 and key != "threshold_sigma")
+            ):
+                raise SequenceError(
+                    path, f"event_sensor.{key}", f"must be a positive number, got {value!r}"
+                )
+            out[key] = float(value)
+    return out
 
 
 def measured_coverage(res: TrackResult) -> tuple[int, float, float]:
@@ -164,8 +215,19 @@ def track_sequence(
     from satpose.datasets.star_scenarios import EVENTS_FILE
 
     cam, frames = open_star_sequence(seq_dir, pipeline)
+    stated = event_sensor_calibration(Path(seq_dir))
+    config = replace(config or StarTrackerConfig(), **stated)
+    if "psf_sigma_px" in stated:  # stated: not measured
+        config = replace(config, psf_outputs=0)
     tracker = StarTracker(cam, config)
     if pipeline == "events":
+        if frames and not (seq_dir / EVENTS_FILE).is_file():
+            raise SequenceError(
+                seq_dir / EVENTS_FILE,
+                None,
+                "required file is missing: the events pipeline needs events (a frames-only "
+                "recording runs with --pipeline frames)",
+            )
         ev = read_events(seq_dir / EVENTS_FILE)
         if len(ev) == 0:
             raise SequenceError(seq_dir / EVENTS_FILE, "events", "no events")
@@ -228,7 +290,7 @@ def track_sequence(
                     R[k], cov[k] = s.R, s.cov
         else:
             raise SequenceError(seq_dir, "estimator", f"unknown estimator {estimator!r}")
-    return TrackResult(sols, np.array([s.t_s for s in sols]), R, cov, estimator, bad)
+    return TrackResult(sols, np.array([s.t_s for s in sols]), R, cov, estimator, bad, config)
 
 
 def attitude_errors_arcsec(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
@@ -312,7 +374,7 @@ def write_recording(
     err = np.full((len(res.t_s), 3), np.nan)
     if truth is not None and ok.any():
         err[ok] = attitude_errors_arcsec(res.R[ok], truth.at(res.t_s[ok]))
-    tracker_cfg = StarTrackerConfig()
+    tracker_cfg = res.config or StarTrackerConfig()
     w = tracker_cfg.window_s
     for k, sol in enumerate(res.solutions):
         rec.set_time("time", duration=float(sol.t_s))
@@ -402,7 +464,7 @@ def _cmd_track(args: argparse.Namespace) -> None:
             "sequence": str(args.sequence),
             "pipeline": args.pipeline,
             "estimator": args.estimator,
-            "frontend": to_plain(StarTrackerConfig()),
+            "frontend": to_plain(res.config or StarTrackerConfig()),
         }
         _write_outputs(res, tmp, args.sequence, meta)
         if args.rerun:

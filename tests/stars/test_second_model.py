@@ -107,16 +107,17 @@ def test_dvs_noise_and_hot_pixels_are_found_by_the_stream_filter() -> None:
 
 
 def test_correlated_events_window() -> None:
-    """Noise-free: two neighbouring pixels 4 ms apart are kept with a 5 ms window, not with
-    3 ms; a lone pixel never."""
+    """Noise-free, 10 ms bins: neighbours in the same bin (5 ms apart) or adjacent bins (15
+    ms) are kept; a neighbour 25 ms later (bins 0 and 3) does not count, nor does another
+    event of the same pixel."""
     ev = Events(
-        t_us=np.array([1000, 5000, 9000]),
-        x=np.array([10, 11, 30], dtype=np.uint16),
-        y=np.array([10, 10, 30], dtype=np.uint16),
-        p=np.array([1, 1, 1], dtype=np.uint8),
+        t_us=np.array([0, 1000, 5000, 9000, 12000, 16000, 20000, 32000, 34000]),
+        x=np.array([10, 40, 11, 30, 50, 41, 50, 50, 31], dtype=np.uint16),
+        y=np.array([10, 40, 10, 30, 5, 41, 5, 6, 30], dtype=np.uint16),
+        p=np.ones(9, dtype=np.uint8),
     )
-    assert correlated_events(ev, 64, 48, 0.005).tolist() == [True, True, False]
-    assert correlated_events(ev, 64, 48, 0.003).tolist() == [False, False, False]
+    keep = correlated_events(ev, 64, 48, 0.01)
+    assert keep.tolist() == [True, True, True, False, False, True, True, True, False]
 
 
 def test_gaia_sky_band() -> None:
@@ -194,3 +195,41 @@ def test_bad_event_files_are_one_line_errors(
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "events.h5" in err and words in err
     assert not out.exists()
+
+
+def test_event_sensor_calibration_keys(tmp_path: Path) -> None:
+    """calib.yaml's event_sensor block is read (calib.yaml over sequence.yaml); unknown keys
+    and non-positive values are refused naming the file and key."""
+    from satpose.datasets.errors import SequenceError
+    from satpose.tools.stars import event_sensor_calibration
+
+    (tmp_path / "sequence.yaml").write_text(
+        "event_sensor: {contrast_threshold: 0.3, psf_sigma_px: 1.2}\n", encoding="utf-8"
+    )
+    (tmp_path / "calib.yaml").write_text("event_sensor: {psf_sigma_px: 0.9}\n", encoding="utf-8")
+    assert event_sensor_calibration(tmp_path) == {"contrast_threshold": 0.3, "psf_sigma_px": 0.9}
+    for bad, key in (("{refractory: 1}", "event_sensor.refractory"), ("{psf_sigma_px: 0}", "psf")):
+        (tmp_path / "calib.yaml").write_text(f"event_sensor: {bad}\n", encoding="utf-8")
+        with pytest.raises(SequenceError, match=key) as info:
+            event_sensor_calibration(tmp_path)
+        assert "calib.yaml" in str(info.value)
+
+
+def test_frames_only_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A recording with frames and no events.h5 is tracked by the frames pipeline (a
+    conventional 10 Hz star tracker, within 60 arcsec of truth per frame: the frame
+    pipeline's RMS is 12-15 arcsec); the events pipeline refuses it in one line."""
+    import pandas as pd
+
+    seq = tmp_path / "slew"
+    assert main(["stars", "render", "slew", "--out", str(seq), "--duration", "0.3"]) == 0
+    (seq / "events.h5").unlink()
+    capsys.readouterr()
+    assert main(["stars", "track", str(seq), "--out", str(tmp_path / "e")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "events.h5" in err and "--pipeline frames" in err
+    out = tmp_path / "f"
+    assert main(["stars", "track", str(seq), "--out", str(out), "--pipeline", "frames"]) == 0
+    df = pd.read_csv(out / "windows.csv")
+    assert len(df) == 3 and (df["status"] != "lost").all()
+    assert np.nanmax(np.abs(df[["err_x_arcsec", "err_y_arcsec"]].to_numpy())) < 60.0
