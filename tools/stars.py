@@ -333,16 +333,42 @@ def _write_outputs(res: TrackResult, out: Path, seq_dir: Path, meta: dict[str, A
 
 SKY = "camera/sky"
 EVENTS = "camera/events"
+EVENT_IMAGE = "camera/event_image"
 STARS = "camera/identified_stars"
 ERRORS = "error_arcsec"
+RATE = "rate_deg_s"
+TIMING = "timing_ms"
+STAR_COUNT = "stars_used"
+
+
+def stars_blueprint() -> Any:
+    """The star run's layout: the camera (sky frame, event image, events, identified stars)
+    left; errors vs truth, body rate, CPU per output and stars used right."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin="camera", name="camera (events, identified stars)"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin=ERRORS, name="attitude error vs truth [arcsec]"),
+                rrb.TimeSeriesView(origin=RATE, name="body rate, smoothed [deg/s]"),
+                rrb.TimeSeriesView(origin=TIMING, name="CPU per output [ms]"),
+                rrb.TimeSeriesView(origin=STAR_COUNT, name="stars used"),
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
 
 
 def write_recording(
     res: TrackResult, seq_dir: Path, path: Path, every: int = 4, max_events: int = 4000
 ) -> None:
-    """Rerun recording: the frames (sky image), each ``every``-th window's events (red ON,
-    blue OFF), the identified stars reprojected with the smoothed attitude, and the attitude
-    errors vs truth (when attitude_truth.csv exists). Timeline ``time`` in seconds."""
+    """Rerun recording (layout `stars_blueprint`): the frames (sky image), each
+    ``every``-th window's event image and events (red ON, blue OFF), the identified stars
+    reprojected with the smoothed attitude, the attitude errors vs truth (when
+    attitude_truth.csv exists), the smoothed body rate, each output's CPU time and stars
+    used. Timeline ``time`` in seconds."""
     import rerun as rr
 
     from satpose.datasets.event_io import read_events
@@ -356,6 +382,7 @@ def write_recording(
     cam, frames = open_star_sequence(seq_dir, "events")
     rec = rr.RecordingStream(application_id="satpose-stars", recording_id=None)
     rec.save(str(path))
+    rec.send_blueprint(stars_blueprint())
     rec.log(
         "camera",
         rr.Pinhole(image_from_camera=cam.K, resolution=[cam.width, cam.height]),
@@ -376,14 +403,36 @@ def write_recording(
         err[ok] = attitude_errors_arcsec(res.R[ok], truth.at(res.t_s[ok]))
     tracker_cfg = res.config or StarTrackerConfig()
     w = tracker_cfg.window_s
+    # Body rate from consecutive smoothed attitudes (camera frame).
+    rate = np.full((len(res.t_s), 3), np.nan)
+    both = ok[1:] & ok[:-1] & (np.diff(res.t_s) > 0)
+    if both.any():
+        i = np.flatnonzero(both)
+        d = np.einsum("nji,njk->nik", res.R[i], res.R[i + 1])
+        rate[i + 1] = np.degrees(matrix_to_rotvec(d)) / np.diff(res.t_s)[i, None]
     for k, sol in enumerate(res.solutions):
         rec.set_time("time", duration=float(sol.t_s))
         if ok[k] and truth is not None:
             for name, v in zip(("x", "y", "roll"), err[k], strict=True):
                 rec.log(f"{ERRORS}/{name}", rr.Scalars(float(v)))
+        if np.isfinite(rate[k, 0]):
+            for name, v in zip(("x", "y", "z"), rate[k], strict=True):
+                rec.log(f"{RATE}/{name}", rr.Scalars(float(v)))
+        rec.log(f"{TIMING}/tracking", rr.Scalars(float(sol.cpu_ms)))
+        rec.log(f"{TIMING}/stream_share", rr.Scalars(float(sol.stream_cpu_ms)))
+        rec.log(STAR_COUNT, rr.Scalars(float(len(sol.star_ids))))
         if k % every:
             continue
         win = ev.slice_time(sol.t_s - w / 2, sol.t_s + w / 2)
+        # The event image of the window: ON counts red, OFF counts blue (what an
+        # event-only recording shows instead of a sky frame).
+        img = np.zeros((cam.height, cam.width, 3), dtype=np.uint8)
+        if len(win):
+            flat = win.y.astype(np.int64) * cam.width + win.x.astype(np.int64)
+            for ch, pol in ((0, 1), (2, 0)):
+                cnt = np.bincount(flat[win.p == pol], minlength=cam.width * cam.height)
+                img[..., ch] = np.clip(cnt * 80, 0, 255).reshape(cam.height, cam.width)
+        rec.log(EVENT_IMAGE, rr.Image(img, color_model="RGB"))
         if len(win):
             sel = slice(0, min(len(win), max_events))
             colors = np.where(win.p[sel, None] > 0, [[230, 60, 40]], [[40, 90, 230]])

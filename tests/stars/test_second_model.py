@@ -233,3 +233,50 @@ def test_frames_only_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str
     df = pd.read_csv(out / "windows.csv")
     assert len(df) == 3 and (df["status"] != "lost").all()
     assert np.nanmax(np.abs(df[["err_x_arcsec", "err_y_arcsec"]].to_numpy())) < 60.0
+
+
+def test_psf_measurement_finds_the_cost_minimum() -> None:
+    """Noise-free oracle: with a cost that is a parabola in log sigma (minimum at 1.13 px),
+    `_measure_psf` returns it exactly after ``psf_outputs`` outputs; a minimum outside the
+    tried range ends at the range's edge (within one grid step)."""
+    from satpose.frontend.stars import SpotFit, StarTrackerConfig
+
+    p = star_preset("dvs-stare")
+    cam = star_camera(p.width, p.height, p.hfov_deg)
+    for target, tol in ((1.13, 1e-9), (5.0, 0.25)):
+        tr = StarTracker(cam, StarTrackerConfig(psf_outputs=3))
+
+        def run_fit(sigma: float, target: float = target) -> SpotFit:
+            z = np.zeros(0)
+            cost = (math.log(sigma / target)) ** 2
+            return SpotFit(z, z, z, z, z.astype(bool), cost=cost)
+
+        for _ in range(3):
+            assert tr.psf_sigma_px == 0.8
+            tr._measure_psf(run_fit)
+        if tol < 1e-6:
+            assert tr.psf_sigma_px == pytest.approx(target, rel=tol)
+        else:
+            assert 1.6 * (1 - tol) <= tr.psf_sigma_px <= 1.6 * (1 + tol)
+
+
+def test_second_model_stare_keeps_lock(tmp_path: Path) -> None:
+    """End to end on the second model's stare (0.05 deg/s, 30 arcsec of 3 Hz jitter; 1 s,
+    seeded): after acquisition every output tracks (the issue's first attempt lost lock once
+    per jitter period) and the smoothed cross-boresight error is <= 30 arcsec RMS (9 arcsec
+    measured over 2 s in docs/results/stars_second_model.md; statistical tolerance 3x)."""
+    from dataclasses import replace
+
+    from satpose.datasets.star_scenarios import load_attitude_truth, render_star_sequence
+    from satpose.tools.stars import attitude_errors_arcsec, track_sequence
+
+    seq = tmp_path / "stare"
+    render_star_sequence(replace(star_preset("dvs-stare"), duration_s=1.0), seq)
+    res = track_sequence(seq, "events", "offline")
+    status = [s.status for s in res.solutions]
+    first = status.index("lost_in_space")
+    assert all(s == "tracking" for s in status[first + 1 :])
+    truth = load_attitude_truth(seq / "attitude_truth.csv")
+    ok = np.isfinite(res.R[:, 0, 0])
+    e = attitude_errors_arcsec(res.R[ok], truth.at(res.t_s[ok]))
+    assert math.sqrt(float(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2))) <= 30.0
