@@ -122,27 +122,28 @@ PRESETS: dict[str, StarScenario] = {
     "stare": StarScenario(name="stare", slew_rate_deg_s=0.1, duration_s=2.0),
     "fast-slew": StarScenario(name="fast-slew", slew_rate_deg_s=5.0, duration_s=2.0),
 }
-_DVS = {
-    "event_model": "dvs",
-    "width": 640,
-    "height": 480,
-    "hfov_deg": 14.0,
-    "slew_axis": (0.3, 1.0, -0.15),
-    "jitter_arcsec": 15.0,
-    "jitter_freq_hz": (8.0,),
-    "seed": 18,
-}
+_DVS = StarScenario(
+    name="dvs",
+    event_model="dvs",
+    width=640,
+    height=480,
+    hfov_deg=14.0,
+    slew_axis=(0.3, 1.0, -0.15),
+    jitter_arcsec=15.0,
+    jitter_freq_hz=(8.0,),
+    seed=18,
+)
 PRESETS.update(
     {
-        "dvs-slew": StarScenario(name="dvs-slew", slew_rate_deg_s=1.0, duration_s=2.0, **_DVS),
-        "dvs-fast-slew": StarScenario(
-            name="dvs-fast-slew", slew_rate_deg_s=6.0, duration_s=1.5, **_DVS
-        ),
-        "dvs-stare": StarScenario(
+        "dvs-slew": replace(_DVS, name="dvs-slew", slew_rate_deg_s=1.0, duration_s=2.0),
+        "dvs-fast-slew": replace(_DVS, name="dvs-fast-slew", slew_rate_deg_s=6.0, duration_s=1.5),
+        "dvs-stare": replace(
+            _DVS,
             name="dvs-stare",
             slew_rate_deg_s=0.05,
             duration_s=2.0,
-            **{**_DVS, "jitter_arcsec": 30.0, "jitter_freq_hz": (3.0,)},
+            jitter_arcsec=30.0,
+            jitter_freq_hz=(3.0,),
         ),
     }
 )

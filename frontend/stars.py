@@ -1082,7 +1082,8 @@ class StarTracker:
         sigma and its two neighbours is used from there on. The model is a Gaussian:
         for a defocused star it finds the Gaussian that best explains the events' levels."""
         c = self.config
-        assert self._psf_costs is not None
+        if self._psf_costs is None:  # measured already (or stated)
+            return
         self._psf_costs += [run_fit(c.psf_sigma_px * f).cost for f in _PSF_FACTORS]
         self._psf_seen += 1
         if self._psf_seen < c.psf_outputs:
