@@ -96,14 +96,15 @@ def test_dvs_noise_and_hot_pixels_are_found_by_the_stream_filter() -> None:
     n_hot = round(0.005 * 64 * 48)
     # A hot pixel whose log-normal rate came out low is not "hot"; most are.
     assert n_hot - 3 <= hot.size <= n_hot and not (set(hot.tolist()) & star_pix)
-    keep, stats = stream_noise(ev, 64, 48, 0.01, 4.0)
+    keep, not_hot, stats = stream_noise(ev, 64, 48, 0.01, 4.0)
     flat = ev.y.astype(np.int64) * 64 + ev.x
     on_star = np.isin(flat, list(star_pix))
     assert keep[on_star].mean() > 0.9
     # Noise away from the star: kept only by a chance neighbour event within 10 ms
     # (8 neighbours x 2 Hz x 20 ms = 0.32 expected: about 27 % kept).
     assert keep[~on_star].mean() < 0.4
-    assert stats.hot_events > 0 and 0 < stats.kept_fraction < 1
+    assert stats.hot_events == int((~not_hot).sum()) > 0 and 0 < stats.kept_fraction < 1
+    assert not np.isin(flat[not_hot], hot).any() and np.isin(flat[~not_hot], hot).all()
 
 
 def test_correlated_events_window() -> None:
