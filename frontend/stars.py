@@ -45,7 +45,7 @@ from satpose.datasets.errors import SatposeError
 from satpose.datasets.events import Events
 from satpose.datasets.geometry import matrix_to_rotvec, rotvec_to_matrix
 from satpose.datasets.sky import radec_to_unit
-from satpose.frontend.star_events import stream_noise
+from satpose.frontend.star_events import StreamStats, stream_noise
 
 ARCSEC = math.pi / (180 * 3600)
 
@@ -938,6 +938,7 @@ class StarTracker:
         self._rate = np.zeros(3)
         self.spot_rms_px: float | None = None  # measured (`_track_gated`), None until then
         self._label = np.zeros(0, dtype=np.int32)  # gate label image (`_track_gated`)
+        self.stream_stats: StreamStats | None = None  # `run_event_tracker`'s noise findings
         # PSF sigma of the spot fit: the configured one until measured (`_measure_psf`).
         self.psf_sigma_px = c.psf_sigma_px
         self._psf_costs: np.ndarray | None = (
@@ -1082,6 +1083,11 @@ class StarTracker:
             self._cone_unit = self.cat.unit[self._cone_rows]
             self._cone_axis = boresight.copy()
         return self._cone_rows, self._cone_unit
+
+    @property
+    def psf_measured(self) -> bool:
+        """Whether `psf_sigma_px` has been measured (`_measure_psf` finished)."""
+        return self._psf_costs is None and self.config.psf_outputs > 0
 
     def _measure_psf(self, run_fit: Callable[[float], SpotFit]) -> None:
         """The star image's blur from the stream: over the first ``psf_outputs`` spot fits
@@ -1401,6 +1407,7 @@ def run_event_tracker(
     # centroids, blobs and fit (their levels NaN), but kept for the pixels' level ladders.
     W, H = tracker.cam.width, tracker.cam.height
     clean, not_hot, noise = stream_noise(events, W, H, c.noise_window_s, c.hot_pixel_ratio)
+    tracker.stream_stats = noise
     if noise.hot_pixels.size:
         events, clean = _subset(events, not_hot), clean[not_hot]
     selected = np.ones(len(events), dtype=bool)

@@ -55,6 +55,7 @@ class TrackResult:
     estimator: str
     bad_frames: BadFrames = field(default_factory=BadFrames)  # frames pipeline only
     config: StarTrackerConfig | None = None  # the frontend's, calib.yaml's event_sensor applied
+    measured: dict[str, Any] = field(default_factory=dict)  # what the tracker measured
 
 
 def open_star_sequence(
@@ -290,7 +291,26 @@ def track_sequence(
                     R[k], cov[k] = s.R, s.cov
         else:
             raise SequenceError(seq_dir, "estimator", f"unknown estimator {estimator!r}")
-    return TrackResult(sols, np.array([s.t_s for s in sols]), R, cov, estimator, bad, config)
+    measured: dict[str, Any] = {}
+    if pipeline == "events":
+        measured["psf_sigma_px"] = round(float(tracker.psf_sigma_px), 4)
+        measured["psf_sigma_source"] = (
+            "stated"
+            if config.psf_outputs == 0
+            else "measured"
+            if tracker.psf_measured
+            else "configured (too few fitted outputs to measure)"
+        )
+        if tracker.spot_rms_px is not None:
+            measured["star_image_rms_px"] = round(float(tracker.spot_rms_px), 4)
+        if tracker.stream_stats is not None:
+            st = tracker.stream_stats
+            measured["hot_pixels"] = int(st.hot_pixels.size)
+            measured["hot_pixel_events"] = int(st.hot_events)
+            measured["events_kept_by_noise_filter"] = round(float(st.kept_fraction), 4)
+    return TrackResult(
+        sols, np.array([s.t_s for s in sols]), R, cov, estimator, bad, config, measured
+    )
 
 
 def attitude_errors_arcsec(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
@@ -514,6 +534,7 @@ def _cmd_track(args: argparse.Namespace) -> None:
             "pipeline": args.pipeline,
             "estimator": args.estimator,
             "frontend": to_plain(res.config or StarTrackerConfig()),
+            "measured": res.measured,
         }
         _write_outputs(res, tmp, args.sequence, meta)
         if args.rerun:

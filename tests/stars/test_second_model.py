@@ -284,3 +284,28 @@ def test_second_model_stare_keeps_lock(tmp_path: Path) -> None:
     ok = np.isfinite(res.R[:, 0, 0])
     e = attitude_errors_arcsec(res.R[ok], truth.at(res.t_s[ok]))
     assert math.sqrt(float(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2))) <= 30.0
+
+
+def test_track_records_what_it_measured(tmp_path: Path) -> None:
+    """config.yaml of `satpose stars track` records what the tracker measured on a second-
+    model recording (seeded, 0.4 s): the hot pixels it dropped (the simulator made 61,
+    0.02 % of 640x480; a few low-rate ones are not told from quiet pixels) and a PSF
+    sigma; with psf_sigma_px stated in calib.yaml, the stated one."""
+    from dataclasses import replace
+
+    from satpose.datasets.star_scenarios import render_star_sequence
+
+    seq = tmp_path / "rec"
+    render_star_sequence(replace(star_preset("dvs-stare"), duration_s=0.4), seq)
+    out = tmp_path / "out"
+    assert main(["stars", "track", str(seq), "--out", str(out)]) == 0
+    measured = yaml.safe_load((out / "config.yaml").read_text(encoding="utf-8"))["measured"]
+    assert 45 <= measured["hot_pixels"] <= 61 and measured["hot_pixel_events"] > 0
+    assert measured["psf_sigma_px"] > 0
+    calib = yaml.safe_load((seq / "calib.yaml").read_text(encoding="utf-8"))
+    calib["event_sensor"] = {"psf_sigma_px": 1.1}
+    (seq / "calib.yaml").write_text(yaml.safe_dump(calib), encoding="utf-8")
+    assert main(["stars", "track", str(seq), "--out", str(tmp_path / "o2")]) == 0
+    cfg = yaml.safe_load((tmp_path / "o2" / "config.yaml").read_text(encoding="utf-8"))
+    assert cfg["measured"]["psf_sigma_source"] == "stated"
+    assert cfg["frontend"]["psf_sigma_px"] == 1.1 == cfg["measured"]["psf_sigma_px"]
