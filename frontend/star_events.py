@@ -94,11 +94,19 @@ class StreamStats:
 
 
 def stream_noise(
-    events: Events, width: int, height: int, window_s: float, hot_ratio: float
+    events: Events,
+    width: int,
+    height: int,
+    window_s: float,
+    hot_ratio: float,
+    min_share: float = 0.0,
+    probe_s: float = 0.2,
 ) -> tuple[np.ndarray, np.ndarray, StreamStats]:
     """Masks of the events that are neither from a `hot_pixels` pixel (``hot_ratio`` 0: none
     is) nor uncorrelated (`correlated_events`; ``window_s`` 0: not filtered), and of those
-    not from a hot pixel; and what was found."""
+    not from a hot pixel; and what was found. The correlation filter runs on the whole
+    stream only if it drops at least ``min_share`` of the first ``probe_s`` (a fast slew's
+    stream is 99 % star events: filtering it cost 0.7 ms per output at 16 deg/s)."""
     n = len(events)
     keep = np.ones(n, dtype=bool)
     hot = np.zeros(0, dtype=np.int64)
@@ -112,6 +120,12 @@ def stream_noise(
             keep &= ~is_hot[flat]
             n_hot = int(n - keep.sum())
     not_hot = keep.copy()
+    if n and window_s > 0 and keep.any() and min_share > 0:
+        i1 = int(np.searchsorted(events.t_us, events.t_us[0] + round(probe_s * 1e6)))
+        head = keep[:i1]
+        probe = _correlated(flat[:i1][head], events.t_us[:i1][head], width, height, window_s)
+        if probe.size == 0 or 1.0 - float(probe.mean()) < min_share:
+            window_s = 0.0  # too little noise to be worth filtering
     if n and window_s > 0 and keep.any():
         # On the stream without the hot pixels: their events would vouch for a neighbour's.
         if n_hot:

@@ -802,6 +802,9 @@ class StarTrackerConfig:
         noise_window_s: background-activity filter: an event is used by the centroids,
             blobs and spot fit only if a neighbouring pixel fired within this time of it
             (`star_events.correlated_events`; 0: off).
+        noise_min_share: the filter runs only if it drops at least this share of the
+            stream's first 0.2 s (`star_events.stream_noise`: at fast slews nearly every
+            event is a star's and the filter only costs CPU).
         gate_spot_rms: the tracking gate's radius is at least this many times the star
             image's measured size (`StarTracker.spot_rms_px`: RMS distance of a star's
             events from their centroid, measured right after an acquisition).
@@ -839,6 +842,7 @@ class StarTrackerConfig:
     epoch_yr: float = 2026.9
     shrink_rate: bool = True
     noise_window_s: float = 0.01
+    noise_min_share: float = 0.05
     gate_spot_rms: float = 2.2
     hot_pixel_ratio: float = 4.0
     static_span_s: float = 0.2
@@ -1406,7 +1410,9 @@ def run_event_tracker(
     # Hot pixels out of the stream; uncorrelated events (background activity) out of the
     # centroids, blobs and fit (their levels NaN), but kept for the pixels' level ladders.
     W, H = tracker.cam.width, tracker.cam.height
-    clean, not_hot, noise = stream_noise(events, W, H, c.noise_window_s, c.hot_pixel_ratio)
+    clean, not_hot, noise = stream_noise(
+        events, W, H, c.noise_window_s, c.hot_pixel_ratio, c.noise_min_share
+    )
     tracker.stream_stats = noise
     if noise.hot_pixels.size:
         events, clean = _subset(events, not_hot), clean[not_hot]
