@@ -203,13 +203,16 @@ CENTROIDS: list[tuple[str, dict[str, object]]] = [
     ("moving-spot fit of threshold levels (default)", {}),
 ]
 CALIBRATION: list[tuple[str, dict[str, float]]] = [
-    ("nominal (C 0.25, spread 0.03, PSF 0.8 px)", {}),
+    ("nominal (C 0.25, spread 0.03; PSF measured from 0.8 px)", {}),
     ("C assumed 0.20 (-20 %)", {"contrast_threshold": 0.20}),
     ("C assumed 0.30 (+20 %)", {"contrast_threshold": 0.30}),
     ("spread assumed 0", {"threshold_sigma": 0.0}),
     ("spread assumed 0.06 (x2)", {"threshold_sigma": 0.06}),
-    ("PSF sigma assumed 0.64 px (-20 %)", {"psf_sigma_px": 0.64}),
-    ("PSF sigma assumed 0.96 px (+20 %)", {"psf_sigma_px": 0.96}),
+    ("PSF sigma 0.8 px stated (not measured)", {"psf_outputs": 0}),
+    ("PSF sigma stated 0.64 px (-20 %, not measured)", {"psf_sigma_px": 0.64, "psf_outputs": 0}),
+    ("PSF sigma stated 0.96 px (+20 %, not measured)", {"psf_sigma_px": 0.96, "psf_outputs": 0}),
+    ("PSF sigma measured, starting at 0.64 px", {"psf_sigma_px": 0.64}),
+    ("PSF sigma measured, starting at 1.0 px", {"psf_sigma_px": 1.0}),
 ]
 
 
@@ -375,9 +378,10 @@ def main() -> int:
         "",
         "## Spot fit with a wrong sensor calibration (1 deg/s, offline, C spread 0.03)",
         "",
-        "The fit assumes the sensor's nominal threshold C, its pixel-to-pixel spread and the",
-        "PSF sigma (a user calibrates these); the simulated sensor has C 0.25, spread 0.03,",
-        "PSF 0.8 px.",
+        "The fit assumes the sensor's nominal threshold C and its pixel-to-pixel spread (a",
+        "user states these in calib.yaml's event_sensor); the PSF sigma is measured from the",
+        "stream unless stated (its starting value then only sets the 0.71-2x range tried).",
+        "The simulated sensor has C 0.25, spread 0.03, PSF 0.8 px.",
         "",
         "| assumed | cross [arcsec] | mean x | mean y | roll [arcsec] | g x | g y | NEES "
         "| in band |",

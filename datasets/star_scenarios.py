@@ -4,6 +4,11 @@ A scenario is one sensor (event pixels and conventional frames sharing optics) s
 the Hipparcos sky. `render_star_sequence` writes a mono satpose sequence (the conventional
 frames, groundtruth.csv holding ``inertial_from_camera`` with zero translation) plus
 ``events.h5`` and ``attitude_truth.csv`` (truth at 1 kHz) beside it.
+
+``event_model="dvs"`` (presets ``dvs-*``) selects the second, deliberately different event
+model instead (`satpose.datasets.dvs_events`: DVS pixel reset, defocused optics, hot
+pixels, timestamp jitter, a Gaia DR3 sky): an event-only recording (sequence.yaml,
+calib.yaml, events.h5, attitude_truth.csv; no frames).
 """
 
 from __future__ import annotations
@@ -14,12 +19,13 @@ import shutil
 import uuid
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
 
 from satpose.datasets.config import to_plain
+from satpose.datasets.dvs_events import DvsSensor, simulate_dvs_events
 from satpose.datasets.errors import ConfigError, SequenceError
 from satpose.datasets.event_io import write_events_h5
 from satpose.datasets.events import (
@@ -30,8 +36,20 @@ from satpose.datasets.events import (
     simulate_events,
 )
 from satpose.datasets.geometry import Rigid3, matrix_to_quat_xyzw
-from satpose.datasets.sequence import Calibration, SequenceWriter, replace_dir
-from satpose.datasets.sky import SlewTrajectory, load_hipparcos, random_rotation, star_camera
+from satpose.datasets.sequence import (
+    FORMAT_VERSION,
+    Calibration,
+    SequenceWriter,
+    calibration_to_yaml,
+    replace_dir,
+)
+from satpose.datasets.sky import (
+    SlewTrajectory,
+    load_gaia,
+    load_hipparcos,
+    random_rotation,
+    star_camera,
+)
 
 TRUTH_RATE_HZ = 1000.0
 EVENTS_FILE = "events.h5"
@@ -51,6 +69,9 @@ class StarScenario:
         jitter_arcsec: jitter amplitude per axis at each of ``jitter_freq_hz``.
         epoch_yr: observation epoch (catalogue propagated to it).
         seed: seeds the start attitude, jitter phases, thresholds and noise.
+        event_model: ``esim`` (`satpose.datasets.events`, Hipparcos sky, with frames;
+            ``photometry``, ``events``, ``frames``) or ``dvs`` (`satpose.datasets.dvs_events`,
+            Gaia DR3 sky in a red-weighted band, event-only; ``dvs``).
     """
 
     name: str
@@ -67,6 +88,8 @@ class StarScenario:
     photometry: Photometry = field(default_factory=Photometry)
     events: EventSensor = field(default_factory=EventSensor)
     frames: FrameSensor = field(default_factory=FrameSensor)
+    event_model: Literal["esim", "dvs"] = "esim"
+    dvs: DvsSensor = field(default_factory=DvsSensor)
 
     def __post_init__(self) -> None:
         if self.width < 16 or self.height < 16 or not (0 < self.hfov_deg < 120):
@@ -75,6 +98,8 @@ class StarScenario:
             raise ConfigError(f"{self.name}: duration must be > 0, rates >= 0")
         if np.linalg.norm(self.slew_axis) == 0:
             raise ConfigError(f"{self.name}: slew_axis must be non-zero")
+        if self.event_model not in ("esim", "dvs"):
+            raise ConfigError(f"{self.name}: event_model must be esim or dvs")
 
     def trajectory(self) -> SlewTrajectory:
         rng = np.random.default_rng(self.seed)
@@ -97,6 +122,31 @@ PRESETS: dict[str, StarScenario] = {
     "stare": StarScenario(name="stare", slew_rate_deg_s=0.1, duration_s=2.0),
     "fast-slew": StarScenario(name="fast-slew", slew_rate_deg_s=5.0, duration_s=2.0),
 }
+_DVS = StarScenario(
+    name="dvs",
+    event_model="dvs",
+    width=640,
+    height=480,
+    hfov_deg=14.0,
+    slew_axis=(0.3, 1.0, -0.15),
+    jitter_arcsec=15.0,
+    jitter_freq_hz=(8.0,),
+    seed=18,
+)
+PRESETS.update(
+    {
+        "dvs-slew": replace(_DVS, name="dvs-slew", slew_rate_deg_s=1.0, duration_s=2.0),
+        "dvs-fast-slew": replace(_DVS, name="dvs-fast-slew", slew_rate_deg_s=6.0, duration_s=1.5),
+        "dvs-stare": replace(
+            _DVS,
+            name="dvs-stare",
+            slew_rate_deg_s=0.05,
+            duration_s=2.0,
+            jitter_arcsec=30.0,
+            jitter_freq_hz=(3.0,),
+        ),
+    }
+)
 
 
 def star_preset(name: str) -> StarScenario:
@@ -122,6 +172,13 @@ def render_star_sequence(
     try:
         seq = work / out.name
         traj = scenario.trajectory()
+        if scenario.event_model == "dvs":
+            _render_dvs(scenario, traj, seq)
+            _write_attitude_truth(scenario, traj, seq)
+            done = work.parent / f".{out.name}.new-{uuid.uuid4().hex[:8]}"
+            os.replace(seq, done)
+            replace_dir(done, out, overwrite)
+            return out
         cam = star_camera(scenario.width, scenario.height, scenario.hfov_deg)
         cat = load_hipparcos(scenario.epoch_yr, scenario.photometry.mag_limit)
         rng = np.random.default_rng(scenario.seed + 1)
@@ -163,27 +220,61 @@ def render_star_sequence(
             rng,
         )
         write_events_h5(ev, seq / EVENTS_FILE)
-        ts = np.arange(0.0, scenario.duration_s + 1e-9, 1.0 / TRUTH_RATE_HZ)
-        q = matrix_to_quat_xyzw(traj.attitude(ts))
-        wv = traj.body_rate(ts)
-        pd.DataFrame(
-            {
-                "t_s": ts,
-                "qx": q[:, 0],
-                "qy": q[:, 1],
-                "qz": q[:, 2],
-                "qw": q[:, 3],
-                "wx": wv[:, 0],
-                "wy": wv[:, 1],
-                "wz": wv[:, 2],
-            }
-        ).to_csv(seq / ATTITUDE_TRUTH_FILE, index=False, float_format="%.12g")
+        _write_attitude_truth(scenario, traj, seq)
         done = work.parent / f".{out.name}.new-{uuid.uuid4().hex[:8]}"
         os.replace(seq, done)
         replace_dir(done, out, overwrite)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return out
+
+
+def _write_attitude_truth(scenario: StarScenario, traj: SlewTrajectory, seq: Path) -> None:
+    ts = np.arange(0.0, scenario.duration_s + 1e-9, 1.0 / TRUTH_RATE_HZ)
+    q = matrix_to_quat_xyzw(traj.attitude(ts))
+    wv = traj.body_rate(ts)
+    pd.DataFrame(
+        {
+            "t_s": ts,
+            "qx": q[:, 0],
+            "qy": q[:, 1],
+            "qz": q[:, 2],
+            "qw": q[:, 3],
+            "wx": wv[:, 0],
+            "wy": wv[:, 1],
+            "wz": wv[:, 2],
+        }
+    ).to_csv(seq / ATTITUDE_TRUTH_FILE, index=False, float_format="%.12g")
+
+
+def _render_dvs(scenario: StarScenario, traj: SlewTrajectory, seq: Path) -> None:
+    """The event-only recording of the second event model (no frames, no groundtruth.csv)."""
+    import yaml
+
+    seq.mkdir(parents=True)
+    cam = star_camera(scenario.width, scenario.height, scenario.hfov_deg)
+    cat = load_gaia(scenario.dvs.mag_limit)
+    rng = np.random.default_rng(scenario.seed + 1)
+    ev = simulate_dvs_events(cat, traj.attitude, cam, scenario.dvs, 0.0, scenario.duration_s, rng)
+    meta = {
+        "format": FORMAT_VERSION,
+        "name": scenario.name,
+        "kind": "mono",
+        "rate_hz": 1.0 / scenario.duration_s,
+        "generator": {
+            "tool": "satpose stars render",
+            "truth": "attitude_truth.csv holds inertial_from_camera (ICRS) at 1 kHz",
+            "events": EVENTS_FILE,
+            "event_model": "dvs (satpose.datasets.dvs_events)",
+            "scenario": scenario_dict(scenario),
+        },
+    }
+    for name, data in (
+        ("sequence.yaml", meta),
+        ("calib.yaml", calibration_to_yaml(scenario.camera_calibration())),
+    ):
+        (seq / name).write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    write_events_h5(ev, seq / EVENTS_FILE)
 
 
 def with_overrides(s: StarScenario, **kw: Any) -> StarScenario:

@@ -32,6 +32,7 @@ from __future__ import annotations
 import functools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -44,6 +45,7 @@ from satpose.datasets.errors import SatposeError
 from satpose.datasets.events import Events
 from satpose.datasets.geometry import matrix_to_rotvec, rotvec_to_matrix
 from satpose.datasets.sky import radec_to_unit
+from satpose.frontend.star_events import StreamStats, stream_noise
 
 ARCSEC = math.pi / (180 * 3600)
 
@@ -451,6 +453,8 @@ class SpotFit:
         n: events used, (S,).
         ok: converged with enough events, (S,).
         d_omega: the shared body-rate correction [rad/s] (zero unless fitted).
+        cost: Huber cost (at 2 sigma, in sigma^2) of all events of the stars with at least
+            4 events, at the solution.
     """
 
     px: np.ndarray
@@ -461,6 +465,7 @@ class SpotFit:
     d_omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
     d_omega_data: np.ndarray = field(default_factory=lambda: np.zeros(3))
     d_omega_info: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    cost: float = 0.0
 
 
 def fit_moving_spots(
@@ -587,6 +592,11 @@ def fit_moving_spots(
     used = ok[lab]
     dof = int(used.sum()) - P * int(ok.sum())
     chi2 = float(np.sum((w * r * r)[used])) / dof if dof > 0 else 1.0
+    # Huber cost (2 sigma) of every event of the stars with enough events: the same events
+    # whatever the PSF, so fits with different PSF sigmas can be compared (`StarTracker`
+    # measures the sigma this way).
+    rs = np.abs(r[fitted[lab]]) * np.sqrt(w0[fitted[lab]])
+    cost = float(np.sum(np.where(rs <= 2.0, rs * rs, 4.0 * rs - 4.0)))
     cov_full = Hinv  # the last iteration's (H is not changed after it)
     if shared:
         # Marginal of each star's unknowns with d_omega unknown too (last linearisation).
@@ -601,7 +611,15 @@ def fit_moving_spots(
         d_data = np.linalg.lstsq(info, red @ d_omega, rcond=None)[0]
         rate_info = info / chi2
     return SpotFit(
-        state[:, :2], state[:, 2], cov_full[:, :2, :2], cnt, ok, d_omega, d_data, rate_info
+        state[:, :2],
+        state[:, 2],
+        cov_full[:, :2, :2],
+        cnt,
+        ok,
+        d_omega,
+        d_data,
+        rate_info,
+        cost if np.isfinite(cost) else math.inf,
     )
 
 
@@ -752,6 +770,11 @@ class StarTrackerConfig:
             ON/OFF pairs per pixel pass; the best choice for ``centroid="balanced"`` at
             slews, but it starves the tracker at 0.1 deg/s where most passes outlast the
             recording) or ``all``.
+        acquisition_selection: the events of the lost-in-space blobs and of the first
+            output after an acquisition (no rate yet, no fit): ``drop_peak`` (default: at
+            16 deg/s, where that output centroids 50 ms long streaks, all events made the
+            smoothed error 3.6 arcsec instead of 2.6) or the same as ``event_selection``
+            (``all``). With ``event_selection="matched"`` the tracking selection is used.
         centroid: star position in tracking: ``spot_fit`` (`fit_moving_spots` on every
             event's threshold level, started from the balanced centroid) or ``balanced``.
         contrast_threshold, threshold_sigma, psf_sigma_px: the event sensor's nominal
@@ -773,6 +796,25 @@ class StarTrackerConfig:
             residuals when that exceeds 1.
         mag_limit: faintest catalogue star predicted in tracking.
         epoch_yr: epoch of the solver catalogue.
+        psf_outputs: the PSF sigma of the spot fit is measured over the first this many
+            fitted outputs (`StarTracker._measure_psf`; ``psf_sigma_px`` is then only the
+            starting point); 0: ``psf_sigma_px`` is used as it is (calib.yaml states it).
+        noise_window_s: background-activity filter: an event is used by the centroids,
+            blobs and spot fit only if a neighbouring pixel fired within this time of it
+            (`star_events.correlated_events`; 0: off).
+        noise_min_share: the filter runs only if it drops at least this share of the
+            stream's first 0.2 s (`star_events.stream_noise`: at fast slews nearly every
+            event is a star's and the filter only costs CPU).
+        gate_spot_rms: the tracking gate's radius is at least this many times the star
+            image's measured size (`StarTracker.spot_rms_px`: RMS distance of a star's
+            events from their centroid, measured right after an acquisition).
+        hot_pixel_ratio: pixels with more than this many times the events of every
+            neighbour are dropped from the stream (`star_events.hot_pixels`; 0: off).
+        shrink_rate: shrink the predicted rate towards zero by its own noise
+            (`StarTracker.body_rate_rad_s`; for stares right after an acquisition).
+        static_span_s, static_motion_px: a failed tracking output is retried with spans up
+            to ``static_span_s`` (instead of ``lis_window_s``) while the stars move less
+            than ``static_motion_px`` in it (`StarTracker.max_span_s`).
     """
 
     window_s: float = 0.005
@@ -784,7 +826,8 @@ class StarTrackerConfig:
     outlier_sigma: float = 5.0
     rate_history: int = 80
     min_motion_px: float = 0.15
-    event_selection: Literal["matched", "drop_peak", "all"] = "drop_peak"
+    event_selection: Literal["matched", "drop_peak", "all"] = "all"
+    acquisition_selection: Literal["drop_peak", "all"] = "drop_peak"
     centroid: Literal["spot_fit", "balanced"] = "spot_fit"
     contrast_threshold: float = 0.25
     threshold_sigma: float = 0.03
@@ -797,6 +840,14 @@ class StarTrackerConfig:
     scale_by_residuals: bool = True
     mag_limit: float = 7.5
     epoch_yr: float = 2026.9
+    shrink_rate: bool = True
+    noise_window_s: float = 0.01
+    noise_min_share: float = 0.05
+    gate_spot_rms: float = 2.2
+    hot_pixel_ratio: float = 4.0
+    static_span_s: float = 0.2
+    static_motion_px: float = 1.0
+    psf_outputs: int = 20
 
     def __post_init__(self) -> None:
         if not (0 < self.window_s <= self.lis_window_s):
@@ -805,6 +856,8 @@ class StarTrackerConfig:
             raise StarTrackerError("min_stars >= 3, gate_px > 0, centroid_sigma_px > 0")
         if self.event_selection not in ("matched", "drop_peak", "all"):
             raise StarTrackerError(f"unknown event_selection {self.event_selection!r}")
+        if self.acquisition_selection not in ("drop_peak", "all"):
+            raise StarTrackerError(f"unknown acquisition_selection {self.acquisition_selection!r}")
         if self.centroid not in ("spot_fit", "balanced"):
             raise StarTrackerError(f"unknown centroid {self.centroid!r}")
         if not (self.contrast_threshold > 0 and self.threshold_sigma >= 0):
@@ -884,9 +937,18 @@ class StarTracker:
         self._cone_rows = np.zeros(0, dtype=np.int64)
         self._cone_unit = np.zeros((0, 3))
         self.sigma_rad = c.centroid_sigma_px / cam.fx
-        self.history: list[tuple[float, np.ndarray]] = []
+        self.history: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t, R, cov)
         self._rate_src: tuple[np.ndarray, np.ndarray, float, float] | None = None
         self._rate = np.zeros(3)
+        self.spot_rms_px: float | None = None  # measured (`_track_gated`), None until then
+        self._label = np.zeros(0, dtype=np.int32)  # gate label image (`_track_gated`)
+        self.stream_stats: StreamStats | None = None  # `run_event_tracker`'s noise findings
+        # PSF sigma of the spot fit: the configured one until measured (`_measure_psf`).
+        self.psf_sigma_px = c.psf_sigma_px
+        self._psf_costs: np.ndarray | None = (
+            np.zeros(len(_PSF_FACTORS)) if c.psf_outputs > 0 else None
+        )
+        self._psf_seen = 0
 
     # ---- building blocks ------------------------------------------------------------------
 
@@ -946,7 +1008,7 @@ class StarTracker:
         """Attitude at ``t_s`` from the last attitude and the rate over recent outputs."""
         if not self.history:
             return None
-        t1, R1 = self.history[-1]
+        t1, R1, _ = self.history[-1]
         return R1 @ rotvec_to_matrix(self.body_rate_rad_s() * (t_s - t1))
 
     def body_rate_rad_s(self) -> np.ndarray:
@@ -954,10 +1016,20 @@ class StarTracker:
         if len(self.history) < 2:
             return np.zeros(3)
         k = max(0, len(self.history) - 1 - self.config.rate_history)
-        (t0, R0), (t1, R1) = self.history[k], self.history[-1]
+        (t0, R0, P0), (t1, R1, P1) = self.history[k], self.history[-1]
         src = self._rate_src  # once per output (predict, span, gate, motion all ask)
         if src is None or src[0] is not R0 or src[1] is not R1 or (src[2], src[3]) != (t0, t1):
-            self._rate = matrix_to_rotvec(R0.T @ R1) / (t1 - t0) if t1 > t0 else np.zeros(3)
+            w = matrix_to_rotvec(R0.T @ R1) / (t1 - t0) if t1 > t0 else np.zeros(3)
+            if self.config.shrink_rate and t1 > t0:
+                # The difference of two noisy attitudes: per axis noise variance s^2 =
+                # (var0 + var1) / dt^2. Shrunk towards zero by w^2 / (w^2 + s^2) (the MMSE
+                # factor for a rate of that size): a slew is left as it is, but right after
+                # an acquisition at a stare (outputs 10 ms apart, 20-80 arcsec noise: 2000
+                # arcsec/s of rate noise against 0.05 deg/s) the noise no longer moves the
+                # gates and the centroids (the second event model lost lock every 0.3 s).
+                s2 = (np.diagonal(P0) + np.diagonal(P1)) / (t1 - t0) ** 2
+                w = w * w**2 / np.maximum(w**2 + s2, 1e-30)
+            self._rate = w
             self._rate_src = (R0, R1, t0, t1)  # holds the arrays: their ids stay theirs
         return self._rate
 
@@ -972,6 +1044,19 @@ class StarTracker:
             return c.lis_window_s
         motion = c.min_motion_px * (1.0 if self.rate_settled() else 2.0)
         return float(np.clip(motion / speed, c.window_s, c.lis_window_s))
+
+    def max_span_s(self) -> float:
+        """Longest event span a tracking output may integrate when retried: ``lis_window_s``,
+        or up to ``static_span_s`` while the stars move less than ``static_motion_px`` in it
+        (a stare: jitter around a nearly still sky fires few events, and a longer span
+        blurs nothing)."""
+        c = self.config
+        speed = float(np.linalg.norm(self.body_rate_rad_s())) * self.cam.fx
+        if c.static_span_s <= c.lis_window_s:
+            return c.lis_window_s
+        if speed <= 0:
+            return c.static_span_s
+        return float(np.clip(c.static_motion_px / speed, c.lis_window_s, c.static_span_s))
 
     def rate_settled(self) -> bool:
         """Whether the rate rests on two tracked outputs after the last acquisition (the
@@ -1003,11 +1088,39 @@ class StarTracker:
             self._cone_axis = boresight.copy()
         return self._cone_rows, self._cone_unit
 
+    @property
+    def psf_measured(self) -> bool:
+        """Whether `psf_sigma_px` has been measured (`_measure_psf` finished)."""
+        return self._psf_costs is None and self.config.psf_outputs > 0
+
+    def _measure_psf(self, run_fit: Callable[[float], SpotFit]) -> None:
+        """The star image's blur from the stream: over the first ``psf_outputs`` spot fits
+        of a run, the fit is repeated with the PSF sigma at each of `_PSF_FACTORS` times the
+        configured one and the Huber costs (`SpotFit.cost`: the same events each time) are
+        summed; then the sigma at the parabola's minimum in log sigma through the best
+        sigma and its two neighbours is used from there on. The model is a Gaussian:
+        for a defocused star it finds the Gaussian that best explains the events' levels."""
+        c = self.config
+        if self._psf_costs is None:  # measured already (or stated)
+            return
+        self._psf_costs += [run_fit(c.psf_sigma_px * f).cost for f in _PSF_FACTORS]
+        self._psf_seen += 1
+        if self._psf_seen < c.psf_outputs:
+            return
+        cost, self._psf_costs = self._psf_costs, None
+        k = int(np.clip(np.argmin(cost), 1, cost.size - 2))
+        y0, y1, y2 = cost[k - 1 : k + 2]
+        den = y0 - 2 * y1 + y2
+        step = 0.5 * (y0 - y2) / den if den > 0 else 0.0
+        log_f = math.log(_PSF_FACTORS[k]) + float(np.clip(step, -1, 1)) * math.log(2) / 4
+        self.psf_sigma_px = c.psf_sigma_px * math.exp(log_f)
+
     def _accept(self, sol: AttitudeSolution) -> AttitudeSolution:
         if sol.R is None:
             self.history.clear()
         else:
-            self.history.append((sol.t_s, sol.R))
+            cov = np.zeros((3, 3)) if sol.cov is None else sol.cov
+            self.history.append((sol.t_s, sol.R, cov))
             del self.history[: -self.config.rate_history - 1]
         return sol
 
@@ -1044,6 +1157,7 @@ class StarTracker:
         span_s: float | None = None,
         levels: np.ndarray | None = None,
         selected: np.ndarray | None = None,
+        blob_selected: np.ndarray | None = None,
     ) -> AttitudeSolution:
         """Event tracker step: an attitude at the centre of ``[t0_s, t1_s)`` from ``events``
         (already sliced; they may start earlier, ``span_s`` before ``t1_s``).
@@ -1053,7 +1167,8 @@ class StarTracker:
         image motion; with ``levels`` (each event's `ladder_levels`, aligned with
         ``events``) and ``centroid="spot_fit"`` refined by `fit_moving_spots`; Wahba. Lost
         (or too few stars): lost-in-space on the window's blobs. ``selected`` (aligned with
-        ``events``) marks the events the balanced centroids and blobs use (all if None).
+        ``events``) marks the events the balanced centroids use (all if None),
+        ``blob_selected`` those the blobs use (``selected`` if None).
         """
         start = time.process_time()
         c = self.config
@@ -1065,7 +1180,8 @@ class StarTracker:
                 events, t_mid, R_pred, span_s or (t1_s - t0_s), levels, selected
             )
         if sol.R is None:
-            blobs = events if selected is None else _subset(events, selected)
+            use = selected if blob_selected is None else blob_selected
+            blobs = events if use is None else _subset(events, use)
             sol = self.identify(
                 event_spots(blobs, self.cam.width, self.cam.height, 2 * c.min_events), t_mid
             )
@@ -1088,7 +1204,14 @@ class StarTracker:
         # Until a rate is known (one past attitude) the prediction ignores the motion.
         # The events of a star spread along its path over the span.
         streak = float(np.linalg.norm(self.body_rate_rad_s())) * cam.fx * span_s
-        gate = c.gate_px * (3.0 if len(self.history) < 3 else 1.0) + 0.5 * streak
+        wide = len(self.history) < 3
+        base = c.gate_px
+        if self.spot_rms_px is not None:
+            # A wide (defocused) star's events reach beyond gate_px: a gate that cuts one
+            # side of them pulls the centroid towards the prediction, and the error feeds
+            # back (the second event model's stare: 100 arcsec).
+            base = max(base, c.gate_spot_rms * self.spot_rms_px)
+        gate = base * (3.0 if wide else 1.0) + 0.5 * streak
         g = math.ceil(gate)
         off = np.arange(-g, g + 1)
         cx = np.rint(px[:, 0]).astype(np.int64)
@@ -1098,10 +1221,16 @@ class StarTracker:
         X, Y = np.broadcast_arrays(X, Y)
         dist2 = (X - px[:, 0, None, None]) ** 2 + (Y - px[:, 1, None, None]) ** 2
         inside = (dist2 <= gate**2) & (X >= 0) & (X < cam.width) & (Y >= 0) & (Y < cam.height)
-        label = np.zeros(cam.height * cam.width, dtype=np.int64)
+        # One label image per tracker, cleared after use (zeroing 0.3 M pixels per output
+        # was a tenth of the CPU per output at 6 deg/s).
+        if self._label.size != cam.height * cam.width:
+            self._label = np.zeros(cam.height * cam.width, dtype=np.int32)
+        label = self._label
+        stamped = (Y * cam.width + X)[inside]
         star = np.broadcast_to(np.arange(1, rows.size + 1)[:, None, None], X.shape)
-        label[(Y * cam.width + X)[inside]] = star[inside]
-        lab_all = label[events.y.astype(np.int64) * cam.width + events.x.astype(np.int64)]
+        label[stamped] = star[inside]
+        lab_all = label[events.y.astype(np.int32) * cam.width + events.x].astype(np.int64)
+        label[stamped] = 0
         # The gated events only, from here on (a star's events are a small share of a
         # window's at fast slews).
         gi = np.flatnonzero(lab_all)
@@ -1118,6 +1247,19 @@ class StarTracker:
         ok = cnt >= c.min_events
         if ok.sum() < c.min_stars:
             return AttitudeSolution(t_mid, None, None, "lost")
+        if len(self.history) == 2 and streak < 1.0:
+            # The star image's size from the wide gate of the second output after an
+            # acquisition (the first with a rate; nothing cut): the median over stars of the
+            # events' RMS distance from their centroid, if the stars hardly move in the span.
+            li = lab[hit] - 1
+            d2 = (ex_f[hit] - cen[li, 0]) ** 2 + (ey_f[hit] - cen[li, 1]) ** 2
+            near = d2 < (c.gate_px * 2.0) ** 2  # not a neighbouring star's events
+            r2 = np.bincount(li[near], weights=d2[near], minlength=rows.size)
+            n2 = np.bincount(li[near], minlength=rows.size)
+            good = ok & (n2 >= 2 * c.min_events)
+            if good.sum() >= c.min_stars:
+                rms = float(np.median(np.sqrt(r2[good] / n2[good])))
+                self.spot_rms_px = rms if self.spot_rms_px is None else max(self.spot_rms_px, rms)
         # Move each centroid to the window centre along the predicted image motion.
         b = bearings(cam, cen[ok])
         w = self.body_rate_rad_s()
@@ -1152,28 +1294,35 @@ class StarTracker:
         li = li[use]
         top = np.zeros(int(ok.sum()))
         np.maximum.at(top, li, lvl)
-        g0 = float((2 * ndtr(0.5 / c.psf_sigma_px) - 1) ** 2)
+        sigma_psf = self.psf_sigma_px
+        g0 = float((2 * ndtr(0.5 / sigma_psf) - 1) ** 2)
         C = c.contrast_threshold
         log_flux0 = np.log(np.maximum(np.expm1((top + 0.5) * C), 1e-3) / g0)
         # One body rate for the span's stars, fitted, where the span reaches back over more
         # than one output (slow slews): within it jitter moves the stars at a rate the
         # prediction (0.4 s of outputs) averages away.
         shared_rate = c.fit_rate_sigma_rad_s > 0 and span_s > 1.5 * c.window_s
-        fit = fit_moving_spots(
-            li,
-            ex_f[use],
-            ey_f[use],
-            et[use] - t_mid,
-            lvl * C,
-            px_mid,
-            vel,
-            log_flux0,
-            c.psf_sigma_px,
-            level_sigma(lvl, c.contrast_threshold, c.threshold_sigma),
-            vel_sigma_px_s=c.fit_velocity_sigma_px_s,
-            rate_jac=vel_jac,
-            rate_sigma=c.fit_rate_sigma_rad_s if shared_rate else 0.0,
-        )
+
+        def run_fit(sigma: float) -> SpotFit:
+            return fit_moving_spots(
+                li,
+                ex_f[use],
+                ey_f[use],
+                et[use] - t_mid,
+                lvl * C,
+                px_mid,
+                vel,
+                log_flux0,
+                sigma,
+                level_sigma(lvl, c.contrast_threshold, c.threshold_sigma),
+                vel_sigma_px_s=c.fit_velocity_sigma_px_s,
+                rate_jac=vel_jac,
+                rate_sigma=c.fit_rate_sigma_rad_s if shared_rate else 0.0,
+            )
+
+        fit = run_fit(sigma_psf)
+        if self._psf_costs is not None and int(fit.ok.sum()) >= c.min_stars:
+            self._measure_psf(run_fit)
         # Fitted stars with the fit's own noise (mean of the two axes' variances, floored);
         # stars the fit could not take (fewer than 4 levelled events: most of them at
         # 0.1 deg/s) keep their moved balanced centroid with centroid_sigma_px.
@@ -1190,6 +1339,11 @@ class StarTracker:
             sol = replace(sol, rate_meas_rad_s=w + fit.d_omega_data, rate_info=fit.d_omega_info)
             w = w + fit.d_omega
         return _at_data_time(sol, star_of[lab[hit]], et[hit], sig**-2.0, w)
+
+
+_PSF_FACTORS = 2.0 ** (np.arange(-2, 5) / 4.0)
+"""PSF sigmas tried by `StarTracker._measure_psf`, relative to the configured one
+(0.71x-2x)."""
 
 
 def _compact_labels(ok: np.ndarray) -> np.ndarray:
@@ -1253,7 +1407,17 @@ def run_event_tracker(
     that whole-stream step."""
     c = tracker.config
     cpu0 = time.process_time()
+    # Hot pixels out of the stream; uncorrelated events (background activity) out of the
+    # centroids, blobs and fit (their levels NaN), but kept for the pixels' level ladders.
+    W, H = tracker.cam.width, tracker.cam.height
+    clean, not_hot, noise = stream_noise(
+        events, W, H, c.noise_window_s, c.hot_pixel_ratio, c.noise_min_share
+    )
+    tracker.stream_stats = noise
+    if noise.hot_pixels.size:
+        events, clean = _subset(events, not_hot), clean[not_hot]
     selected = np.ones(len(events), dtype=bool)
+    acquire: np.ndarray | None = None  # acquisition's selection, if different
     levels: np.ndarray | None = None
     fits = c.centroid == "spot_fit"
     if len(events) and c.event_selection == "matched":
@@ -1261,22 +1425,30 @@ def run_event_tracker(
         selected = matched_ladder_events(events.t_s, events.x, events.y, events.p, passes=passes)
         if fits:
             levels = ladder_levels(events.p, passes)
-    elif len(events) and (fits or c.event_selection == "drop_peak"):
+    elif len(events) and (fits or "drop_peak" in (c.event_selection, c.acquisition_selection)):
         all_levels, peak = stream_levels(events.t_s, events.x, events.y, events.p)
         levels = all_levels if fits else None
         if c.event_selection == "drop_peak":
             selected = ~peak
+        elif c.acquisition_selection == "drop_peak":
+            acquire = ~peak & clean
+    selected &= clean
+    if acquire is None:
+        acquire = selected
+    if levels is not None:
+        levels = np.where(clean, levels, np.nan)
     if levels is None:
-        events = _subset(events, selected)
+        events, acquire = _subset(events, selected), acquire[selected]
         selected = np.ones(len(events), dtype=bool)
     prep_cpu_ms = 1e3 * (time.process_time() - cpu0)
 
-    def window(a: float, b: float) -> tuple[Events, np.ndarray, np.ndarray | None]:
+    def window(a: float, b: float) -> tuple[Events, np.ndarray, np.ndarray, np.ndarray | None]:
         i0, i1 = np.searchsorted(events.t_us, [round(a * 1e6), round(b * 1e6)])
         ev = Events(
             t_us=events.t_us[i0:i1], x=events.x[i0:i1], y=events.y[i0:i1], p=events.p[i0:i1]
         )
-        return ev, selected[i0:i1], None if levels is None else levels[i0:i1]
+        lv = None if levels is None else levels[i0:i1]
+        return ev, selected[i0:i1], acquire[i0:i1], lv
 
     out: list[AttitudeSolution] = []
     t = t0_s
@@ -1287,25 +1459,31 @@ def run_event_tracker(
             if b > t1_s + 1e-9:
                 break
             span = tracker.integration_s()
-            ev, sel, lv = window(max(t0_s, b - span), b)
+            ev, sel, acq, lv = window(max(t0_s, b - span), b)
             if len(tracker.history) < 2:
                 # No rate yet to move centroids in time: the attitude is that of the span's
-                # centre (still later than the lost-in-space output before it).
-                sol = tracker.track_events(ev, b - span, b, levels=lv, selected=sel)
+                # centre (still later than the lost-in-space output before it); the
+                # acquisition's events.
+                sol = tracker.track_events(ev, b - span, b, levels=lv, selected=acq)
             else:
                 saved = list(tracker.history)
                 settled = tracker.rate_settled()
-                sol = tracker.track_events(ev, t, b, span_s=span, levels=lv, selected=sel)
+                sol = tracker.track_events(
+                    ev, t, b, span_s=span, levels=lv, selected=sel, blob_selected=acq
+                )
                 cpu = sol.cpu_ms
                 # Too few events (the stars nearly stop along track when the jitter cancels
                 # a slow slew): retry the same output with twice the span, up to
                 # lis_window_s, before giving up tracking. Only once the rate is settled
                 # (right after acquisition a failure more likely means a bad rate).
-                while settled and sol.status != "tracking" and span < c.lis_window_s:
-                    span = min(2 * span, c.lis_window_s)
+                max_span = tracker.max_span_s()
+                while settled and sol.status != "tracking" and span < max_span:
+                    span = min(2 * span, max_span)
                     tracker.history[:] = saved
-                    ev, sel, lv = window(max(t0_s, b - span), b)
-                    sol = tracker.track_events(ev, t, b, span_s=span, levels=lv, selected=sel)
+                    ev, sel, acq, lv = window(max(t0_s, b - span), b)
+                    sol = tracker.track_events(
+                        ev, t, b, span_s=span, levels=lv, selected=sel, blob_selected=acq
+                    )
                     cpu += sol.cpu_ms
                 sol = replace(sol, cpu_ms=cpu)
         else:
@@ -1315,8 +1493,8 @@ def run_event_tracker(
             b = t + c.lis_window_s * 2 ** min(fails, 3)
             if b > t1_s + 1e-9:
                 break
-            ev, sel, _ = window(t, b)
-            sol = tracker.track_events(_subset(ev, sel), t, b)
+            ev, _, acq, _ = window(t, b)
+            sol = tracker.track_events(_subset(ev, acq), t, b)
         out.append(sol)
         fails = fails + 1 if sol.R is None else 0
         t = b

@@ -54,6 +54,8 @@ class TrackResult:
     cov: np.ndarray
     estimator: str
     bad_frames: BadFrames = field(default_factory=BadFrames)  # frames pipeline only
+    config: StarTrackerConfig | None = None  # the frontend's, calib.yaml's event_sensor applied
+    measured: dict[str, Any] = field(default_factory=dict)  # what the tracker measured
 
 
 def open_star_sequence(
@@ -78,6 +80,56 @@ def open_star_sequence(
             "recording runs with --pipeline events)",
         )
     return load_calibration(root / "calib.yaml").left, ()
+
+
+EVENT_SENSOR_KEYS = ("contrast_threshold", "threshold_sigma", "psf_sigma_px")
+"""Keys of the optional ``event_sensor:`` block of calib.yaml or sequence.yaml: the event
+sensor's calibration the spot fit assumes (`StarTrackerConfig` fields of the same names)."""
+
+
+def event_sensor_calibration(seq_dir: Path) -> dict[str, float]:
+    """The ``event_sensor:`` block of ``seq_dir``'s sequence.yaml and calib.yaml (calib.yaml
+    wins where both state a key): ``contrast_threshold`` (mean log-intensity threshold C),
+    ``threshold_sigma`` (its pixel-to-pixel spread), ``psf_sigma_px`` (Gaussian sigma of the
+    star image [px]). Empty when neither states it.
+
+    Raises:
+        SequenceError: an unknown key or a value that is not a positive number (naming the
+            file and key).
+    """
+    out: dict[str, float] = {}
+    for name in ("sequence.yaml", "calib.yaml"):
+        path = Path(seq_dir) / name
+        if not path.is_file():
+            continue
+        try:
+            data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise SequenceError(path, None, f"cannot read ({exc})") from None
+        block = data.get("event_sensor") if isinstance(data, dict) else None
+        if block is None:
+            continue
+        if not isinstance(block, dict):
+            raise SequenceError(path, "event_sensor", "must be a mapping")
+        for key, value in block.items():
+            if key not in EVENT_SENSOR_KEYS:
+                raise SequenceError(
+                    path,
+                    f"event_sensor.{key}",
+                    f"unknown key (known: {', '.join(EVENT_SENSOR_KEYS)})",
+                )
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            if (
+                not ok
+                or not math.isfinite(value)
+                or value < 0
+                or (value == 0 and key != "threshold_sigma")
+            ):
+                raise SequenceError(
+                    path, f"event_sensor.{key}", f"must be a positive number, got {value!r}"
+                )
+            out[key] = float(value)
+    return out
 
 
 def measured_coverage(res: TrackResult) -> tuple[int, float, float]:
@@ -164,11 +216,31 @@ def track_sequence(
     from satpose.datasets.star_scenarios import EVENTS_FILE
 
     cam, frames = open_star_sequence(seq_dir, pipeline)
+    stated = event_sensor_calibration(Path(seq_dir))
+    config = replace(config or StarTrackerConfig(), **stated)
+    if "psf_sigma_px" in stated:  # stated: not measured
+        config = replace(config, psf_outputs=0)
     tracker = StarTracker(cam, config)
     if pipeline == "events":
+        if frames and not (seq_dir / EVENTS_FILE).is_file():
+            raise SequenceError(
+                seq_dir / EVENTS_FILE,
+                None,
+                "required file is missing: the events pipeline needs events (a frames-only "
+                "recording runs with --pipeline frames)",
+            )
         ev = read_events(seq_dir / EVENTS_FILE)
         if len(ev) == 0:
             raise SequenceError(seq_dir / EVENTS_FILE, "events", "no events")
+        outside = (ev.x >= cam.width) | (ev.y >= cam.height)
+        if outside.any():
+            k = int(np.argmax(outside))
+            raise SequenceError(
+                seq_dir / EVENTS_FILE,
+                "events/x,y",
+                f"{int(outside.sum())} events outside the {cam.width}x{cam.height} sensor of "
+                f"calib.yaml (first: x={int(ev.x[k])}, y={int(ev.y[k])})",
+            )
         t1 = ev.t_s[-1] if duration_s is None else min(duration_s, ev.t_s[-1])
         sols = run_event_tracker(tracker, ev, 0.0, float(t1))
     bad = BadFrames(Path(seq_dir))
@@ -219,7 +291,26 @@ def track_sequence(
                     R[k], cov[k] = s.R, s.cov
         else:
             raise SequenceError(seq_dir, "estimator", f"unknown estimator {estimator!r}")
-    return TrackResult(sols, np.array([s.t_s for s in sols]), R, cov, estimator, bad)
+    measured: dict[str, Any] = {}
+    if pipeline == "events":
+        measured["psf_sigma_px"] = round(float(tracker.psf_sigma_px), 4)
+        measured["psf_sigma_source"] = (
+            "stated"
+            if config.psf_outputs == 0
+            else "measured"
+            if tracker.psf_measured
+            else "configured (too few fitted outputs to measure)"
+        )
+        if tracker.spot_rms_px is not None:
+            measured["star_image_rms_px"] = round(float(tracker.spot_rms_px), 4)
+        if tracker.stream_stats is not None:
+            st = tracker.stream_stats
+            measured["hot_pixels"] = int(st.hot_pixels.size)
+            measured["hot_pixel_events"] = int(st.hot_events)
+            measured["events_kept_by_noise_filter"] = round(float(st.kept_fraction), 4)
+    return TrackResult(
+        sols, np.array([s.t_s for s in sols]), R, cov, estimator, bad, config, measured
+    )
 
 
 def attitude_errors_arcsec(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
@@ -262,16 +353,42 @@ def _write_outputs(res: TrackResult, out: Path, seq_dir: Path, meta: dict[str, A
 
 SKY = "camera/sky"
 EVENTS = "camera/events"
+EVENT_IMAGE = "camera/event_image"
 STARS = "camera/identified_stars"
 ERRORS = "error_arcsec"
+RATE = "rate_deg_s"
+TIMING = "timing_ms"
+STAR_COUNT = "stars_used"
+
+
+def stars_blueprint() -> Any:
+    """The star run's layout: the camera (sky frame, event image, events, identified stars)
+    left; errors vs truth, body rate, CPU per output and stars used right."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin="camera", name="camera (events, identified stars)"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin=ERRORS, name="attitude error vs truth [arcsec]"),
+                rrb.TimeSeriesView(origin=RATE, name="body rate, smoothed [deg/s]"),
+                rrb.TimeSeriesView(origin=TIMING, name="CPU per output [ms]"),
+                rrb.TimeSeriesView(origin=STAR_COUNT, name="stars used"),
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
 
 
 def write_recording(
     res: TrackResult, seq_dir: Path, path: Path, every: int = 4, max_events: int = 4000
 ) -> None:
-    """Rerun recording: the frames (sky image), each ``every``-th window's events (red ON,
-    blue OFF), the identified stars reprojected with the smoothed attitude, and the attitude
-    errors vs truth (when attitude_truth.csv exists). Timeline ``time`` in seconds."""
+    """Rerun recording (layout `stars_blueprint`): the frames (sky image), each
+    ``every``-th window's event image and events (red ON, blue OFF), the identified stars
+    reprojected with the smoothed attitude, the attitude errors vs truth (when
+    attitude_truth.csv exists), the smoothed body rate, each output's CPU time and stars
+    used. Timeline ``time`` in seconds."""
     import rerun as rr
 
     from satpose.datasets.event_io import read_events
@@ -285,6 +402,7 @@ def write_recording(
     cam, frames = open_star_sequence(seq_dir, "events")
     rec = rr.RecordingStream(application_id="satpose-stars", recording_id=None)
     rec.save(str(path))
+    rec.send_blueprint(stars_blueprint())
     rec.log(
         "camera",
         rr.Pinhole(image_from_camera=cam.K, resolution=[cam.width, cam.height]),
@@ -303,16 +421,38 @@ def write_recording(
     err = np.full((len(res.t_s), 3), np.nan)
     if truth is not None and ok.any():
         err[ok] = attitude_errors_arcsec(res.R[ok], truth.at(res.t_s[ok]))
-    tracker_cfg = StarTrackerConfig()
+    tracker_cfg = res.config or StarTrackerConfig()
     w = tracker_cfg.window_s
+    # Body rate from consecutive smoothed attitudes (camera frame).
+    rate = np.full((len(res.t_s), 3), np.nan)
+    both = ok[1:] & ok[:-1] & (np.diff(res.t_s) > 0)
+    if both.any():
+        i = np.flatnonzero(both)
+        d = np.einsum("nji,njk->nik", res.R[i], res.R[i + 1])
+        rate[i + 1] = np.degrees(matrix_to_rotvec(d)) / np.diff(res.t_s)[i, None]
     for k, sol in enumerate(res.solutions):
         rec.set_time("time", duration=float(sol.t_s))
         if ok[k] and truth is not None:
             for name, v in zip(("x", "y", "roll"), err[k], strict=True):
                 rec.log(f"{ERRORS}/{name}", rr.Scalars(float(v)))
+        if np.isfinite(rate[k, 0]):
+            for name, v in zip(("x", "y", "z"), rate[k], strict=True):
+                rec.log(f"{RATE}/{name}", rr.Scalars(float(v)))
+        rec.log(f"{TIMING}/tracking", rr.Scalars(float(sol.cpu_ms)))
+        rec.log(f"{TIMING}/stream_share", rr.Scalars(float(sol.stream_cpu_ms)))
+        rec.log(STAR_COUNT, rr.Scalars(float(len(sol.star_ids))))
         if k % every:
             continue
         win = ev.slice_time(sol.t_s - w / 2, sol.t_s + w / 2)
+        # The event image of the window: ON counts red, OFF counts blue (what an
+        # event-only recording shows instead of a sky frame).
+        img = np.zeros((cam.height, cam.width, 3), dtype=np.uint8)
+        if len(win):
+            flat = win.y.astype(np.int64) * cam.width + win.x.astype(np.int64)
+            for ch, pol in ((0, 1), (2, 0)):
+                cnt = np.bincount(flat[win.p == pol], minlength=cam.width * cam.height)
+                img[..., ch] = np.clip(cnt * 80, 0, 255).reshape(cam.height, cam.width)
+        rec.log(EVENT_IMAGE, rr.Image(img, color_model="RGB"))
         if len(win):
             sel = slice(0, min(len(win), max_events))
             colors = np.where(win.p[sel, None] > 0, [[230, 60, 40]], [[40, 90, 230]])
@@ -393,7 +533,8 @@ def _cmd_track(args: argparse.Namespace) -> None:
             "sequence": str(args.sequence),
             "pipeline": args.pipeline,
             "estimator": args.estimator,
-            "frontend": to_plain(StarTrackerConfig()),
+            "frontend": to_plain(res.config or StarTrackerConfig()),
+            "measured": res.measured,
         }
         _write_outputs(res, tmp, args.sequence, meta)
         if args.rerun:

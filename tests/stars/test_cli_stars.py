@@ -29,7 +29,16 @@ def test_render_and_track(tmp_path: Path, capsys) -> None:  # type: ignore[no-un
     import rerun as rr
 
     summary = str(rr.chunk.RrdReader(out / "stars.rrd").store().summary())
-    for entity in ("/camera/sky", "/camera/events", "/camera/identified_stars", "/error_arcsec/x"):
+    for entity in (
+        "/camera/sky",
+        "/camera/events",
+        "/camera/event_image",
+        "/camera/identified_stars",
+        "/error_arcsec/x",
+        "/rate_deg_s/y",
+        "/timing_ms/tracking",
+        "/stars_used",
+    ):
         assert entity in summary
     # An existing output is refused with a one-line error, exit status 2.
     assert main(["stars", "track", str(seq), "--out", str(out)]) == 2
