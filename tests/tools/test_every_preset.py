@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from satpose.datasets.star_scenarios import PRESETS as STAR_PRESETS
 from satpose.tools.cli import main
 
 # preset -> (frames, the command's name and extra arguments, a file the command must write)
@@ -57,7 +58,7 @@ def test_preset_runs_without_a_traceback(
         assert not out.exists()
 
 
-@pytest.mark.parametrize("name", ["slew", "stare", "fast-slew"])
+@pytest.mark.parametrize("name", sorted(STAR_PRESETS))
 def test_star_preset_runs_without_a_traceback(
     name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
