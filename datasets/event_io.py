@@ -8,6 +8,9 @@
 - AEDAT4 (``.aedat4``, iniVation DV recordings): read and written with ``faery`` (its event
   dtype: ``t`` microseconds, ``x``, ``y``, ``on``); the first event stream of the file.
 
+A recording folder holds one of them as ``events.h5`` (what satpose writes), ``events.hdf5``,
+``events.txt`` or ``events.aedat4`` (`find_events_file`).
+
 Writers go to a temporary name and rename into place.
 """
 
@@ -158,3 +161,15 @@ def read_events(path: str | Path) -> Events:
     if path.suffix == ".aedat4":
         return read_events_aedat4(path)
     raise SequenceError(path, None, "unknown event file type (expected .h5, .txt or .aedat4)")
+
+
+EVENT_FILE_NAMES = ("events.h5", "events.hdf5", "events.txt", "events.aedat4")
+"""The event file names a recording folder may hold, in the order they are looked for."""
+
+
+def find_events_file(folder: str | Path) -> Path | None:
+    """The recording's event file: the first of `EVENT_FILE_NAMES` in ``folder``, or None."""
+    for name in EVENT_FILE_NAMES:
+        if (Path(folder) / name).is_file():
+            return Path(folder) / name
+    return None

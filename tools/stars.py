@@ -212,7 +212,7 @@ def track_sequence(
         RotationGraphConfig,
         smooth_attitudes,
     )
-    from satpose.datasets.event_io import read_events
+    from satpose.datasets.event_io import EVENT_FILE_NAMES, find_events_file, read_events
     from satpose.datasets.star_scenarios import EVENTS_FILE
 
     cam, frames = open_star_sequence(seq_dir, pipeline)
@@ -222,21 +222,23 @@ def track_sequence(
         config = replace(config, psf_outputs=0)
     tracker = StarTracker(cam, config)
     if pipeline == "events":
-        if frames and not (seq_dir / EVENTS_FILE).is_file():
+        events_file = find_events_file(seq_dir)
+        if events_file is None:
+            hint = " (a frames-only recording runs with --pipeline frames)" if frames else ""
             raise SequenceError(
-                seq_dir / EVENTS_FILE,
+                Path(seq_dir) / EVENTS_FILE,
                 None,
-                "required file is missing: the events pipeline needs events (a frames-only "
-                "recording runs with --pipeline frames)",
+                f"required file is missing: the events pipeline needs one of "
+                f"{', '.join(EVENT_FILE_NAMES)}{hint}",
             )
-        ev = read_events(seq_dir / EVENTS_FILE)
+        ev = read_events(events_file)
         if len(ev) == 0:
-            raise SequenceError(seq_dir / EVENTS_FILE, "events", "no events")
+            raise SequenceError(events_file, "events", "no events")
         outside = (ev.x >= cam.width) | (ev.y >= cam.height)
         if outside.any():
             k = int(np.argmax(outside))
             raise SequenceError(
-                seq_dir / EVENTS_FILE,
+                events_file,
                 "events/x,y",
                 f"{int(outside.sum())} events outside the {cam.width}x{cam.height} sensor of "
                 f"calib.yaml (first: x={int(ev.x[k])}, y={int(ev.y[k])})",
@@ -391,7 +393,7 @@ def write_recording(
     used. Timeline ``time`` in seconds."""
     import rerun as rr
 
-    from satpose.datasets.event_io import read_events
+    from satpose.datasets.event_io import find_events_file, read_events
     from satpose.datasets.star_scenarios import (
         ATTITUDE_TRUTH_FILE,
         EVENTS_FILE,
@@ -414,7 +416,10 @@ def write_recording(
         lo, hi = np.percentile(img, [1.0, 99.9])
         img8 = (np.clip((img - lo) / max(hi - lo, 1.0), 0, 1) * 255).astype(np.uint8)
         rec.log(SKY, rr.Image(img8, color_model="L"))
-    ev = read_events(seq_dir / EVENTS_FILE)
+    events_file = find_events_file(seq_dir)
+    if events_file is None:
+        raise SequenceError(Path(seq_dir) / EVENTS_FILE, None, "required file is missing")
+    ev = read_events(events_file)
     truth_path = seq_dir / ATTITUDE_TRUTH_FILE
     truth = load_attitude_truth(truth_path) if truth_path.is_file() else None
     ok = np.isfinite(res.R[:, 0, 0])

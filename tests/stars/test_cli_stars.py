@@ -104,3 +104,38 @@ def test_event_only_recording_is_tracked(tmp_path: Path, capsys) -> None:  # typ
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "frames.csv" in err and "--pipeline events" in err
     assert not (tmp_path / "f").exists()
+
+
+@pytest.mark.parametrize("layout", ["events.txt", "events.aedat4"])
+def test_recording_with_other_event_layouts_gives_the_same_attitude(
+    tmp_path: Path, capsys, layout: str
+) -> None:  # type: ignore[no-untyped-def]
+    """The same events as the Event Camera Dataset's text lines or an AEDAT4 file instead of
+    events.h5: `stars track` finds the file and gives the same attitudes (microsecond
+    timestamps survive both round trips exactly)."""
+    import shutil
+
+    from satpose.datasets.event_io import read_events, write_events_aedat4, write_events_txt
+    from satpose.datasets.sequence import load_calibration
+
+    seq = tmp_path / "slew"
+    assert main(["stars", "render", "slew", "--out", str(seq), "--duration", "0.2"]) == 0
+    ref = tmp_path / "ref"
+    assert main(["stars", "track", str(seq), "--out", str(ref)]) == 0
+    other = tmp_path / "other"
+    shutil.copytree(seq, other)
+    ev = read_events(other / "events.h5")
+    (other / "events.h5").unlink()
+    if layout == "events.txt":
+        write_events_txt(ev, other / layout)
+    else:
+        cam = load_calibration(other / "calib.yaml").left
+        write_events_aedat4(ev, other / layout, cam.width, cam.height)
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["stars", "track", str(other), "--out", str(out)]) == 0, capsys.readouterr().err
+    a = pd.read_csv(ref / "windows.csv")
+    b = pd.read_csv(out / "windows.csv")
+    assert len(a) == len(b)
+    cols = ["err_x_arcsec", "err_y_arcsec"]
+    np.testing.assert_allclose(b[cols].to_numpy(), a[cols].to_numpy(), atol=1e-9, equal_nan=True)
