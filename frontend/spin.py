@@ -1058,6 +1058,16 @@ def _window_fit(
 
 
 @dataclass(frozen=True)
+class _Refined:
+    """A window refitted once the half-turn cue decided the fold (`_full_turn_fit`): the rate
+    the cue chose and its sigma [rad/s], and the `SpinFit` fields of the refitted model."""
+
+    rate: float
+    sigma: float
+    fields: dict[str, object]
+
+
+@dataclass(frozen=True)
 class _ModelFit:
     """One model fitted to a window: rate and sigma [rad/s], angle noise [rad], adjusted
     explained fraction, and the refusal ``(status, reason)`` its own checks give (or None)."""
@@ -1294,7 +1304,7 @@ def estimate_spin_rate(
             sigma = math.hypot(sigma * other.noise / primary.noise, rate - other.rate)
             fitted["angle_noise_rad"] = other.noise
 
-    def refine(mirror: bool) -> tuple[float, float, dict[str, object]] | tuple[SpinStatus, str]:
+    def refine(mirror: bool) -> _Refined | tuple[SpinStatus, str]:
         # the half-turn cue decided: the outline is asymmetric, fit its full-turn wobble
         p0 = projection if projection is not None else fit("projection").params
         out = _full_turn_fit(tau, th, p0, mirror, dt, span, cfg)
@@ -1309,7 +1319,7 @@ def estimate_spin_rate(
                 f"-> {math.degrees(abs(params[2])):.2f} deg/s, {shift_bins:.1f} bins)",
             )
         extra = {"model": "full-turn", "params": params, "angle_noise_rad": noise}
-        return abs(_full_turn_frequency(params)), sig, extra
+        return _Refined(abs(_full_turn_frequency(params)), sig, extra)
 
     return _resolve_fold(
         t,
@@ -1339,8 +1349,7 @@ def _resolve_fold(
     cfg: RateConfig,
     refuse: Callable[[SpinStatus, str], SpinFit],
     m: int,
-    refine: Callable[[bool], tuple[float, float, dict[str, object]] | tuple[SpinStatus, str]]
-    | None = None,
+    refine: Callable[[bool], _Refined | tuple[SpinStatus, str]] | None = None,
 ) -> SpinFit:
     """The accepted folded rate (below ``90 deg * f``) -> the answer: one rate (``ok``), every
     candidate (``ambiguous``) or a refusal (the half-turn cue contradicts ``max_rate_deg_s``).
@@ -1399,10 +1408,10 @@ def _resolve_fold(
     chosen = rate if vote.verdict == "folded" else step - rate
     if refine is not None:
         refined = refine(vote.verdict == "mirror")
-        if isinstance(refined[0], SpinStatus):
-            return refuse(refined[0], str(refined[1]))
-        chosen, sigma = float(refined[0]), float(refined[1])  # type: ignore[arg-type]
-        fitted = {**fitted, **refined[2]}  # type: ignore[dict-item]
+        if isinstance(refined, tuple):
+            return refuse(*refined)
+        chosen, sigma = refined.rate, refined.sigma
+        fitted = {**fitted, **refined.fields}
     if limit is not None and chosen > limit:
         return refuse(
             SpinStatus.ALIASING,
