@@ -29,11 +29,14 @@ Over a sliding buffer of the last ``n`` frames (seed 001: ``n = 19``):
    The outline's half-turn cue (its skewness along the major axis, step 3) keeps the body's
    end on one side of the fitted line for ``omega`` and flips it every frame for the mirror;
    when it does not decide, every rate up to ``max_rate_deg_s`` (default: below ``180 deg *
-   f``) that fits is listed in an ``ambiguous`` estimate, never one of them as the rate.
-7. Refusals, each with a reason: too few usable frames; the angle turning too slowly for the
-   window; a rate too close to the fold at ``90 deg * frame rate``; an angle series the spin
-   does not explain (line of sight near the spin plane, target not spinning or not
-   elongated); a fit that left the spectral peak.
+   f``) that fits is listed in an ``ambiguous`` estimate, never one of them as the rate. When
+   it decides, the outline is asymmetric and its axis wobbles with the body's full turn: the
+   window is refitted with harmonics of the chosen rate as nuisance terms (the ``full-turn``
+   model, `RateConfig.full_turn_harmonics`), which gives the rate and its sigma.
+7. Refusals, each with a reason: too few usable frames; the angle (or an asymmetric
+   outline's full-turn wobble) turning too slowly for the window; a rate too close to the fold
+   at ``90 deg * frame rate``; an angle series the spin does not explain (line of sight near
+   the spin plane, target not spinning or not elongated); a fit that left the spectral peak.
 
 numpy and OpenCV only (the frontend never imports gtsam).
 """
