@@ -12,6 +12,7 @@ sigma being estimated from 7-15 residual degrees of freedom).
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import cv2
@@ -319,7 +320,10 @@ def test_a_full_turn_wobble_slower_than_the_window_is_too_slow() -> None:
     rng = np.random.default_rng(9)
     t, a, sk = wobbling_body(15.0, 0.8, rng)
     fit = estimate_spin_rate(t, a, skewness=sk)
-    assert fit.status is SpinStatus.TOO_SLOW and "at least 24 frames" in fit.reason, fit.reason
+    assert fit.status is SpinStatus.TOO_SLOW, fit.reason
+    # 24 frames for exactly 15 deg/s; the window's fitted rate, a little off, may round to 25
+    needed = re.search(r"window of at least (\d+) frames", fit.reason)
+    assert needed is not None and int(needed.group(1)) in (24, 25), fit.reason
     t, a, sk = wobbling_body(15.0, 0.8, rng, n=30, noise_deg=0.0)
     fit = estimate_spin_rate(t, a, RateConfig(window_frames=30), skewness=sk)
     assert fit.ok and abs(math.degrees(fit.rate_rad_s) - 15.0) < EXACT_DEG_S, fit.reason
