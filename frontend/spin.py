@@ -654,8 +654,12 @@ class SpinFit:
         samples: usable angles in the window.
         frame_interval_s: the frames' nominal interval [s] (sets the fold).
         spectral_rate_rad_s: the rate at the periodogram's peak (the fit's start) [rad/s].
-        model: the fitted model (``two-sine`` or ``projection``), empty when none was fitted.
-        params: the model's parameters (`RateConfig.model`), times relative to ``t_ref_s``.
+        model: the fitted model (``two-sine`` or ``projection``, `RateConfig.model`; or
+            ``full-turn`` when the half-turn cue decided and the window was refitted with the
+            outline's full-turn wobble, `RateConfig.full_turn_harmonics`), empty when none was
+            fitted.
+        params: the model's parameters (`_two_sine_angle`, `_projection_angle`,
+            `_full_turn_angle`), times relative to ``t_ref_s``.
         t_ref_s: time origin of the model [s] (window centre).
         angle_noise_rad: standard deviation of one ``theta'`` about the fit [rad].
         explained: fraction of ``theta'``'s variation (about its circular mean) the model
