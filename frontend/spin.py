@@ -1400,6 +1400,13 @@ def _resolve_fold(
         cands = alias_rates(rate, dt, top)
         if len(cands) == 1:
             return ok(cands[0])
+        if not cands:
+            # the folded rate and its mirror both above the stated limit (a limit under 90 f)
+            return refuse(
+                SpinStatus.ALIASING,
+                f"theta' fits {math.degrees(rate):.2f} or {math.degrees(step - rate):.2f} deg/s, "
+                f"both above max_rate_deg_s {cfg.max_rate_deg_s:g}: the prior is wrong",
+            )
         cue = "half-turn cue off" if vote is None else vote.describe()
         return ambiguous(
             cands,

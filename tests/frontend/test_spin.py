@@ -370,6 +370,15 @@ def test_full_turn_harmonics_absorb_a_small_lean_when_the_cue_decides(rate: floa
     assert worst[(1, 3)] < 0.01 and worst[(1, 3)] < 0.1 * worst[()], worst
 
 
+def test_a_prior_below_both_the_rate_and_its_mirror_is_refused_not_an_empty_ambiguous() -> None:
+    """89.6 deg/s (mirror 90.4) with ``max_rate_deg_s`` 89 and no cue: no rate up to the prior
+    fits, so the window is refused (``aliasing``), never ``ambiguous`` with no candidate (the
+    regenerated results/spin.md showed that on a broken geometry before this check)."""
+    t, a = turning_line(89.6, 1.0)
+    fit = estimate_spin_rate(t, a, RateConfig(max_rate_deg_s=89.0, fold_guard_sigma=0.0))
+    assert fit.status is SpinStatus.ALIASING and "above max_rate_deg_s 89" in fit.reason, fit.reason
+
+
 def test_a_cue_contradicting_the_prior_is_refused() -> None:
     t, a, sk = turning_body(100.0)
     fit = estimate_spin_rate(t, a, paper_prior(), skewness=sk)
