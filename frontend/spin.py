@@ -29,11 +29,14 @@ Over a sliding buffer of the last ``n`` frames (seed 001: ``n = 19``):
    The outline's half-turn cue (its skewness along the major axis, step 3) keeps the body's
    end on one side of the fitted line for ``omega`` and flips it every frame for the mirror;
    when it does not decide, every rate up to ``max_rate_deg_s`` (default: below ``180 deg *
-   f``) that fits is listed in an ``ambiguous`` estimate, never one of them as the rate.
-7. Refusals, each with a reason: too few usable frames; the angle turning too slowly for the
-   window; a rate too close to the fold at ``90 deg * frame rate``; an angle series the spin
-   does not explain (line of sight near the spin plane, target not spinning or not
-   elongated); a fit that left the spectral peak.
+   f``) that fits is listed in an ``ambiguous`` estimate, never one of them as the rate. When
+   it decides, the outline is asymmetric and its axis wobbles with the body's full turn: the
+   window is refitted with harmonics of the chosen rate as nuisance terms (the ``full-turn``
+   model, `RateConfig.full_turn_harmonics`), which gives the rate and its sigma.
+7. Refusals, each with a reason: too few usable frames; the angle (or an asymmetric
+   outline's full-turn wobble) turning too slowly for the window; a rate too close to the fold
+   at ``90 deg * frame rate``; an angle series the spin does not explain (line of sight near
+   the spin plane, target not spinning or not elongated); a fit that left the spectral peak.
 
 numpy and OpenCV only (the frontend never imports gtsam).
 """
@@ -192,6 +195,21 @@ class RateConfig:
             with errors of 0.5-5 deg/s; the other refuses them (docs/spin.md). Costs the
             second fit (about 1.3 ms per frame).
         cross_check_sigma: see ``cross_check``.
+        full_turn_harmonics: when the half-turn cue is decisive (an asymmetric outline), the
+            estimate comes from the projection model plus these harmonics of the full-turn
+            frequency (the spin rate the cue chose, ``omega`` or ``180 deg * f - omega``)
+            as nuisance terms in ``theta'``: an asymmetric outline's axis wobbles with the
+            body's full-turn phase (2 deg at 1 and 0.5-1 deg at 3 times the rate on the
+            rendered short-wing target, against 1 deg of white noise). Counted as noise the
+            wobble made sigma 1.5-2x the spread where it is fast, and biased the rate where it
+            is slow (docs/spin.md). A harmonic that the window cannot tell from the projection
+            model's own terms (collinear with its Jacobian) is left to the projection model;
+            empty: off.
+        min_full_turn_cycles: with ``full_turn_harmonics``, the fundamental (the full turn,
+            aliased by the frame rate) must complete this many cycles within the window, else
+            ``too-slow``: a slower wobble looks like a change of the rate (at 15 deg/s and 1
+            Hz a turn takes 24 frames; 19 frames hold 0.79 of it). Slower higher harmonics
+            are dropped (they are smaller; near 120 deg/s the third one aliases to a constant).
     """
 
     window_frames: int = 19
@@ -211,6 +229,8 @@ class RateConfig:
     max_peak_shift_bins: float = 1.0
     cross_check: bool = True
     cross_check_sigma: float = 4.0
+    full_turn_harmonics: tuple[int, ...] = (1, 3)
+    min_full_turn_cycles: float = 1.0
 
     def __post_init__(self) -> None:
         if self.window_frames < 4:
@@ -250,6 +270,13 @@ class RateConfig:
             raise ConfigError("spin.rate.cross_check_sigma must be positive")
         if not (self.min_skewness >= 0 and 0 < self.half_turn_alpha < 1):
             raise ConfigError("spin.rate: min_skewness >= 0, half_turn_alpha in (0, 1)")
+        ks = self.full_turn_harmonics
+        if any(k < 1 for k in ks) or len(set(ks)) != len(ks):
+            raise ConfigError(
+                f"spin.rate.full_turn_harmonics must be distinct positive integers, got {ks}"
+            )
+        if not self.min_full_turn_cycles > 0:
+            raise ConfigError("spin.rate.min_full_turn_cycles must be positive")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -627,8 +654,12 @@ class SpinFit:
         samples: usable angles in the window.
         frame_interval_s: the frames' nominal interval [s] (sets the fold).
         spectral_rate_rad_s: the rate at the periodogram's peak (the fit's start) [rad/s].
-        model: the fitted model (``two-sine`` or ``projection``), empty when none was fitted.
-        params: the model's parameters (`RateConfig.model`), times relative to ``t_ref_s``.
+        model: the fitted model (``two-sine`` or ``projection``, `RateConfig.model`; or
+            ``full-turn`` when the half-turn cue decided and the window was refitted with the
+            outline's full-turn wobble, `RateConfig.full_turn_harmonics`), empty when none was
+            fitted.
+        params: the model's parameters (`_two_sine_angle`, `_projection_angle`,
+            `_full_turn_angle`), times relative to ``t_ref_s``.
         t_ref_s: time origin of the model [s] (window centre).
         angle_noise_rad: standard deviation of one ``theta'`` about the fit [rad].
         explained: fraction of ``theta'``'s variation (about its circular mean) the model
@@ -667,6 +698,8 @@ class SpinFit:
             return _two_sine_angle(self.params, tau) % math.pi
         if self.model == "projection":
             return _projection_angle(self.params, tau) % math.pi
+        if self.model == "full-turn":
+            return _full_turn_angle(self.params, tau) % math.pi
         raise ConfigError("this spin estimate has no fitted model")
 
     def measurement(self) -> SpinRateMeasurement:
@@ -850,6 +883,153 @@ def _projection_fit(tau: np.ndarray, th: np.ndarray, omega0: float) -> tuple[np.
     return p, float(np.sqrt(max(cov[2, 2], 0.0)))
 
 
+# -- the full-turn model: the projection model plus the asymmetric outline's wobble ---------------
+
+
+def _full_turn_frequency(params: np.ndarray) -> float:
+    """The full-turn frequency ``Omega = base + sign * omega`` [rad/s] of full-turn parameters
+    ``[psi, c, omega, phi, base, sign, (k, a, b) ...]`` (`_full_turn_angle`)."""
+    return float(params[4] + params[5] * params[2])
+
+
+def _full_turn_angle(params: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """``theta'`` [rad] of the projection model plus harmonics of the full turn:
+    ``_projection_angle([psi, c, omega, phi]) + sum_k (a_k cos k Omega t + b_k sin k Omega t)``
+    for ``params = [psi, c, omega, phi, base, sign, k1, a1, b1, k2, a2, b2, ...]`` with
+    ``Omega = base + sign * omega``: ``omega`` itself (the cue chose the folded rate, ``base``
+    0, ``sign`` 1) or its mirror ``pi / dt - omega`` (``base`` ``pi / dt``, ``sign`` -1)."""
+    out = _projection_angle(params[:4], tau)
+    big = _full_turn_frequency(params)
+    for k, a, b in params[6:].reshape(-1, 3):
+        x = k * big * tau
+        out = out + a * np.cos(x) + b * np.sin(x)
+    return out
+
+
+def _full_turn_jacobian(params: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """(N, 4 + 2 H) Jacobian of `_full_turn_angle` w.r.t. ``[psi, c, omega, phi, a1, b1, ...]``
+    (``base``, ``sign`` and the harmonic numbers are fixed)."""
+    big, sign = _full_turn_frequency(params), float(params[5])
+    cols = [_projection_jacobian(params[:4], tau)]
+    d_omega = np.zeros_like(tau)
+    for k, a, b in params[6:].reshape(-1, 3):
+        x = k * big * tau
+        c, s = np.cos(x), np.sin(x)
+        cols.append(np.column_stack([c, s]))
+        d_omega += k * sign * tau * (b * c - a * s)
+    J = np.concatenate(cols, axis=1)
+    J[:, 2] += d_omega
+    return J
+
+
+def _aliased_cycles(freq_rad_s: float, dt: float, span_s: float) -> float:
+    """Cycles a sinusoid of ``freq_rad_s`` sampled every ``dt`` appears to complete in
+    ``span_s`` (its frequency folded into ``[0, 1 / (2 dt)]``)."""
+    f = (abs(freq_rad_s) * dt / (2.0 * math.pi)) % 1.0  # cycles per frame
+    return min(f, 1.0 - f) * span_s / dt
+
+
+def _full_turn_fit(
+    tau: np.ndarray,
+    th: np.ndarray,
+    projection: np.ndarray,
+    mirror: bool,
+    dt: float,
+    span_s: float,
+    cfg: RateConfig,
+) -> tuple[np.ndarray, float, float] | str:
+    """Refit a window whose half-turn cue decided the fold with the outline's full-turn wobble
+    as nuisance (`RateConfig.full_turn_harmonics`), from the projection model's parameters.
+
+    Returns ``(params, omega sigma [rad/s], angle noise [rad])`` (params of
+    `_full_turn_angle`; the rate is ``|Omega|``, `_full_turn_frequency`), or why the window
+    cannot separate the wobble from the rate (its fundamental completes fewer than
+    ``min_full_turn_cycles`` cycles). The sigma is the angle noise left by this model
+    (``m - 4 - 2 H`` degrees of freedom) times the solution's sensitivity to each angle."""
+    p = np.asarray(projection, float).copy()
+    if p[2] < 0:  # the same curve with omega > 0: (c, omega, phi) -> -(c, omega, phi)
+        p[1:4] = -p[1:4]
+    base, sign = (math.pi / dt, -1.0) if mirror else (0.0, 1.0)
+    big = base + sign * p[2]
+    cycles = _aliased_cycles(big, dt, span_s)
+    if 1 in cfg.full_turn_harmonics and cycles < cfg.min_full_turn_cycles:
+        frames = math.ceil(cfg.min_full_turn_cycles * span_s / max(cycles, 1e-9))
+        return (
+            f"the outline is asymmetric (the half-turn cue decided the fold) and its full-turn "
+            f"wobble completes {cycles:.2f} cycles in the {span_s:g} s window (minimum "
+            f"{cfg.min_full_turn_cycles:g}): it cannot be told from a change of the rate; use "
+            f"a window of at least {frames} frames"
+        )
+    # Harmonics the window can separate from the projection model's own terms: sampled
+    # cos / sin of k Omega must keep part of their norm outside the span of its Jacobian
+    # (a harmonic aliased onto 2 omega is the projection model's c, onto 0 its psi).
+    U, sv, _ = np.linalg.svd(_projection_jacobian(p, tau), full_matrices=False)
+    U = U[:, sv > 1e-9 * sv[0]]
+    dof_left = th.size - 4
+    terms: list[float] = []
+    for k in sorted(cfg.full_turn_harmonics):
+        x = k * big * tau
+        H = np.column_stack([np.cos(x), np.sin(x)])
+        outside = H - U @ (U.T @ H)
+        norm = np.sum(H * H, axis=0)
+        fraction = np.sqrt(np.sum(outside * outside, axis=0) / np.maximum(norm, 1e-300))
+        if (
+            _aliased_cycles(k * big, dt, span_s) < cfg.min_full_turn_cycles
+            or fraction.min() < _MIN_OUTSIDE_FRACTION
+            or dof_left - 2 < _MIN_FULL_TURN_DOF
+        ):
+            continue
+        dof_left -= 2
+        terms += [float(k), 0.0, 0.0]
+    p = np.concatenate([p, [base, sign], terms])
+    if terms:
+        # linear start for the harmonics on the projection model's residuals
+        r0 = _wrap_half(th - _projection_angle(p[:4], tau))
+        A = _full_turn_jacobian(p, tau)[:, 4:]
+        coef, *_ = np.linalg.lstsq(A, r0, rcond=None)
+        p[7::3], p[8::3] = coef[0::2], coef[1::2]
+    free = np.r_[0:4, np.flatnonzero(np.arange(p.size - 6) % 3 != 0) + 6]  # not base/sign/k
+
+    def cost_of(q: np.ndarray) -> float:
+        return float(np.sum(_wrap_half(th - _full_turn_angle(q, tau)) ** 2))
+
+    cost, lam = cost_of(p), 1e-3
+    for _ in range(60):
+        r = _wrap_half(th - _full_turn_angle(p, tau))
+        J = _full_turn_jacobian(p, tau)
+        Hm, grad = J.T @ J, J.T @ r
+        improved = False
+        for _ in range(10):
+            dp = np.linalg.solve(Hm + lam * np.diag(np.diag(Hm) + 1e-12), grad)
+            q = p.copy()
+            q[free] += dp
+            q[1] = float(np.clip(q[1], -1.0, 1.0))
+            new_cost = cost_of(q)
+            if new_cost <= cost:
+                # converged when omega stops moving and the cost stops falling (as
+                # `_projection_fit`)
+                improved = abs(dp[2]) > 1e-9 or cost - new_cost > 1e-9 * cost
+                p, cost = q, new_cost
+                lam = max(lam / 10.0, 1e-9)
+                break
+            lam *= 10.0
+        if not improved:
+            break
+    J = _full_turn_jacobian(p, tau)
+    cov = np.linalg.pinv(J.T @ J, rcond=1e-12)  # per unit angle variance
+    noise = math.sqrt(cost / max(th.size - J.shape[1], 1))
+    return p, noise * math.sqrt(max(float(cov[2, 2]), 0.0)), noise
+
+
+_MIN_OUTSIDE_FRACTION = 0.3
+"""A full-turn harmonic is fitted only when at least this fraction of its sampled cos and sin
+lies outside the projection model's Jacobian (else that model absorbs it): 0.01-0.02 where it
+aliases onto twice the folded rate (120 deg/s at 1 Hz), above 0.9 elsewhere on the rendered
+sweep."""
+_MIN_FULL_TURN_DOF = 3
+"""Residual degrees of freedom the full-turn model keeps (harmonics beyond that are dropped)."""
+
+
 # -- the estimate -------------------------------------------------------------------------------
 
 
@@ -882,6 +1062,16 @@ def _window_fit(
         frame_interval_s=dt,
         **extra,  # type: ignore[arg-type]
     )
+
+
+@dataclass(frozen=True)
+class _Refined:
+    """A window refitted once the half-turn cue decided the fold (`_full_turn_fit`): the rate
+    the cue chose and its sigma [rad/s], and the `SpinFit` fields of the refitted model."""
+
+    rate: float
+    sigma: float
+    fields: dict[str, object]
 
 
 @dataclass(frozen=True)
@@ -1069,6 +1259,7 @@ def estimate_spin_rate(
 
     primary = fit(cfg.model)
     rate, sigma = primary.rate, primary.sigma
+    projection = primary.params if cfg.model == "projection" else None
     fitted: dict[str, object] = {
         "spectral_rate_rad_s": spectral,
         "model": cfg.model,
@@ -1092,6 +1283,8 @@ def estimate_spin_rate(
         )
     if cfg.cross_check:
         other = fit("projection" if cfg.model == "two-sine" else "two-sine")
+        if other.model == "projection":
+            projection = other.params
         if other.refusal is not None:
             return refuse(
                 SpinStatus.GEOMETRY,
@@ -1117,7 +1310,38 @@ def estimate_spin_rate(
         if other.noise < primary.noise:
             sigma = math.hypot(sigma * other.noise / primary.noise, rate - other.rate)
             fitted["angle_noise_rad"] = other.noise
-    return _resolve_fold(t, th, sk, (t0, t1), dt, rate, sigma, fitted, cfg, refuse, m)
+
+    def refine(mirror: bool) -> _Refined | tuple[SpinStatus, str]:
+        # the half-turn cue decided: the outline is asymmetric, fit its full-turn wobble
+        p0 = projection if projection is not None else fit("projection").params
+        out = _full_turn_fit(tau, th, p0, mirror, dt, span, cfg)
+        if isinstance(out, str):
+            return SpinStatus.TOO_SLOW, out
+        params, sig, noise = out
+        shift_bins = abs(2.0 * float(params[2]) - b_peak) / bin_rad_s
+        if shift_bins > cfg.max_peak_shift_bins or not math.isfinite(sig):
+            return (
+                SpinStatus.NO_FIT,
+                f"the full-turn fit left the spectral peak ({math.degrees(0.5 * b_peak):.2f} "
+                f"-> {math.degrees(abs(params[2])):.2f} deg/s, {shift_bins:.1f} bins)",
+            )
+        extra = {"model": "full-turn", "params": params, "angle_noise_rad": noise}
+        return _Refined(abs(_full_turn_frequency(params)), sig, extra)
+
+    return _resolve_fold(
+        t,
+        th,
+        sk,
+        (t0, t1),
+        dt,
+        rate,
+        sigma,
+        fitted,
+        cfg,
+        refuse,
+        m,
+        refine if cfg.full_turn_harmonics else None,
+    )
 
 
 def _resolve_fold(
@@ -1132,6 +1356,7 @@ def _resolve_fold(
     cfg: RateConfig,
     refuse: Callable[[SpinStatus, str], SpinFit],
     m: int,
+    refine: Callable[[bool], _Refined | tuple[SpinStatus, str]] | None = None,
 ) -> SpinFit:
     """The accepted folded rate (below ``90 deg * f``) -> the answer: one rate (``ok``), every
     candidate (``ambiguous``) or a refusal (the half-turn cue contradicts ``max_rate_deg_s``).
@@ -1139,7 +1364,10 @@ def _resolve_fold(
     ``theta'`` of ``omega`` and of ``180 deg * f - omega`` (and ``180 k f +- omega``) are the
     same samples. The outline's half-turn cue tells the first two apart (`HalfTurn`); the
     full-turn angle it gives repeats for ``360 deg * f - omega``, so rates above ``180 deg *
-    f`` stay candidates whenever ``max_rate_deg_s`` allows them."""
+    f`` stay candidates whenever ``max_rate_deg_s`` allows them. When the cue decides,
+    ``refine(mirror)`` (if given) refits the window with the asymmetric outline's full-turn
+    wobble (`_full_turn_fit`): the rate it chose, its sigma and the model's fields, or a
+    refusal ``(status, reason)``."""
     t0, t1 = window
     step = math.pi / dt  # 180 deg per frame [rad/s]
     limit = math.radians(cfg.max_rate_deg_s) if cfg.max_rate_deg_s is not None else None
@@ -1172,6 +1400,13 @@ def _resolve_fold(
         cands = alias_rates(rate, dt, top)
         if len(cands) == 1:
             return ok(cands[0])
+        if not cands:
+            # the folded rate and its mirror both above the stated limit (a limit under 90 f)
+            return refuse(
+                SpinStatus.ALIASING,
+                f"theta' fits {math.degrees(rate):.2f} or {math.degrees(step - rate):.2f} deg/s, "
+                f"both above max_rate_deg_s {cfg.max_rate_deg_s:g}: the prior is wrong",
+            )
         cue = "half-turn cue off" if vote is None else vote.describe()
         return ambiguous(
             cands,
@@ -1185,6 +1420,12 @@ def _resolve_fold(
             ),
         )
     chosen = rate if vote.verdict == "folded" else step - rate
+    if refine is not None:
+        refined = refine(vote.verdict == "mirror")
+        if isinstance(refined, tuple):
+            return refuse(*refined)
+        chosen, sigma = refined.rate, refined.sigma
+        fitted = {**fitted, **refined.fields}
     if limit is not None and chosen > limit:
         return refuse(
             SpinStatus.ALIASING,
