@@ -257,13 +257,21 @@ def _write_table(rows: list[dict[str, Any]], path: Path) -> pd.DataFrame:
     df = pd.DataFrame(rows)
     first = ["cell", *[a for a in AXES if a in df.columns], "status", "error"]
     df = df[first + [c for c in df.columns if c not in first]]
-    for col in df.columns:  # mixed None/str axis columns (e.g. seed) stay one type per column
-        if df[col].dtype == object and col not in ("error",):
-            types = {type(v) for v in df[col] if v is not None and v == v}
-            if len(types) > 1:
-                df[col] = df[col].map(lambda v: None if v is None else str(v))
+    for col in df.columns:  # a column mixing strings and numbers is written as strings
+        if df[col].dtype == object:
+            kinds = {_kind(v) for v in df[col] if v is not None and v == v}
+            if len(kinds) > 1:
+                df[col] = df[col].map(lambda v: None if v is None or v != v else str(v))
     atomic_write(path, lambda tmp: df.to_parquet(tmp, index=False))
     return df
+
+
+def _kind(v: Any) -> str:
+    if isinstance(v, (bool, np.bool_)):
+        return "bool"
+    if isinstance(v, (int, float, np.number)):
+        return "number"
+    return type(v).__name__
 
 
 def _client(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:
@@ -271,10 +279,15 @@ def _client(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:
     from distributed import Client, LocalCluster
 
     if scheduler:
+        if workers is not None:
+            raise CampaignError(
+                "--workers sizes the LocalCluster; with --scheduler the cluster has its own"
+            )
         try:
-            return Client(scheduler, timeout="15s"), None
-        except (OSError, TimeoutError) as exc:
-            raise CampaignError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
+            return Client(scheduler, timeout="10s"), None
+        except (OSError, TimeoutError, ValueError) as exc:
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise CampaignError(f"cannot reach the Dask scheduler {scheduler}: {msg}") from None
     n = workers or os.cpu_count() or 1
     env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
     dask.config.set(
@@ -336,7 +349,7 @@ def run_campaign(
     if todo:
         client, cluster = _client(scheduler, workers)
         try:
-            if client.dashboard_link and cluster is not None and cluster.dashboard_link:
+            if client.scheduler_info().get("services", {}).get("dashboard"):
                 print(f"Dask dashboard: {client.dashboard_link}", file=sys.stderr)
             limit = spec.time_limit_s
             renders: dict[str, Any] = {}

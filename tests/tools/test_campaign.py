@@ -146,7 +146,9 @@ def test_resume_runs_only_missing_cells(campaign: tuple[Path, Path], tmp_path: P
     before[before["cell"] != gone["cell"]].to_parquet(copy / "results.parquet", index=False)
     outcome = run_campaign(load_spec(spec), copy, workers=1)
     assert (outcome.ran, outcome.skipped) == (1, 3)
-    after = read_results(copy).set_index("cell")
+    table = read_results(copy)
+    assert pd.api.types.is_integer_dtype(table["seed"])  # old and new rows: one column type
+    after = table.set_index("cell")
     assert set(after.index) == set(before["cell"])
     # The same cell on the same (cached) render gives the same metrics, bit for bit.
     again = after.loc[gone["cell"]]
@@ -163,3 +165,13 @@ def test_time_limit_is_a_timeout_row(campaign: tuple[Path, Path], tmp_path: Path
     row = run_cell(cell, rendered, str(tmp_path), 1e-6)
     assert row["status"] == "timeout" and "time limit" in row["error"]
     assert not (tmp_path / "cells" / cell.cell_id / "run").exists()  # no half-written run
+
+
+SPECS = sorted((Path(__file__).parents[2] / "benchmarks" / "campaigns").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("spec", SPECS, ids=lambda p: p.name)
+def test_shipped_specs_load(spec: Path) -> None:
+    assert len(SPECS) >= 2
+    loaded = load_spec(spec)
+    assert loaded.cells and loaded.time_limit_s > 0
