@@ -335,7 +335,12 @@ def run_campaign(
 
     start = time.perf_counter()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CampaignError(
+            f"{out}: cannot use as campaign folder ({exc.strerror or exc})"
+        ) from None
     cache = Path(cache) if cache is not None else out / "sequences"
     old = read_results(out)
     rows: list[dict[str, Any]] = old.to_dict("records") if len(old) else []
@@ -534,7 +539,9 @@ def _handler(args: argparse.Namespace) -> None:
         + (f", {len(table)} rows already in {args.out / RESULTS}" if len(table) else ""),
         flush=True,
     )
-    bar = tqdm(desc=f"campaign {spec.name}", unit="cell", file=sys.stderr, dynamic_ncols=True)
+    bar = tqdm(
+        desc=f"campaign {spec.name}", unit="cell", file=sys.stderr, dynamic_ncols=True, delay=1.0
+    )
 
     def on_row(row: dict[str, Any], done: int, total: int) -> None:
         bar.total = total

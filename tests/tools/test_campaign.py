@@ -175,3 +175,12 @@ def test_shipped_specs_load(spec: Path) -> None:
     assert len(SPECS) >= 2
     loaded = load_spec(spec)
     assert loaded.cells and loaded.time_limit_s > 0
+
+
+def test_out_that_is_a_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    spec = _write(tmp_path, SPEC)
+    out = tmp_path / "taken"
+    out.write_text("not a folder")
+    assert main(["campaign", str(spec), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(out) in err
