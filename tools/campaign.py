@@ -13,6 +13,7 @@ A cell already in the table is skipped on a re-run (docs/campaigns.md).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import logging
 import math
 import os
@@ -351,6 +352,27 @@ def run_campaign(
     todo = [c for c in spec.cells if c.cell_id not in done]
     skipped = len(spec.cells) - len(todo)
     table = out / RESULTS
+    # Scenarios first, on the client: a perturbation value the scenario refuses fails its
+    # cells without a task; the others are grouped by render.
+    scenarios: dict[str, Any] = {}
+    for cell in list(todo):
+        if cell.sequence is None:
+            try:
+                scenarios[cell.cell_id] = scenario_of(cell)
+            except SatposeError as exc:
+                rows.append(
+                    {
+                        "cell": cell.cell_id,
+                        **cell.axes,
+                        "status": "failed",
+                        "error": f"perturb: {exc}",
+                    }
+                )
+                todo.remove(cell)
+                if on_row is not None:
+                    on_row(rows[-1], 0, len(todo))
+    if rows:
+        _write_table(rows, table)
     if todo:
         client, cluster = _client(scheduler, workers)
         try:
@@ -360,15 +382,23 @@ def run_campaign(
             renders: dict[str, Any] = {}
             futures = []
             outdir = str(out.resolve())
+            # Task keys name the output folder too: two campaigns sharing a scheduler must not
+            # share each other's results.
+            tag = hashlib.sha1(f"{outdir}|{cache.resolve()}".encode()).hexdigest()[:8]
             for cell in todo:
                 rendered = None
                 if cell.sequence is None:
-                    scenario = scenario_of(cell)
+                    scenario = scenarios[cell.cell_id]
                     h = scenario_hash(scenario)
                     if h not in renders:
                         folder = str((cache / f"{scenario.name}-{h}").resolve())
                         renders[h] = client.submit(
-                            render_cached, scenario, folder, limit, key=f"render-{h}", retries=1
+                            render_cached,
+                            scenario,
+                            folder,
+                            limit,
+                            key=f"render-{h}-{tag}",
+                            retries=1,
                         )
                     rendered = renders[h]
                 futures.append(
@@ -378,7 +408,7 @@ def run_campaign(
                         rendered,
                         outdir,
                         limit,
-                        key=f"cell-{cell.cell_id}",
+                        key=f"cell-{cell.cell_id}-{tag}",
                         retries=1,
                     )
                 )

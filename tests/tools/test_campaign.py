@@ -184,3 +184,18 @@ def test_out_that_is_a_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFi
     assert main(["campaign", str(spec), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(out) in err
+
+
+def test_perturbation_value_fails_its_cells_only(tmp_path: Path) -> None:
+    spec = _write(
+        tmp_path,
+        "base: {scenario: paper-docking, frames: 2, size: 160x120}\n"
+        "axes:\n  perturb:\n    wide: {rig.baseline_m: wide}\n    bad-focal: {rig.focal_px: -1}\n",
+    )
+    # Both cells fail on the client (no render, no cluster) and land in the table.
+    outcome = run_campaign(load_spec(spec), tmp_path / "out")
+    assert outcome.statuses == {"ok": 0, "failed": 2, "timeout": 0}
+    df = read_results(tmp_path / "out").set_index("perturb")
+    assert "baseline_m" in df.loc["wide", "error"]
+    assert "focal" in df.loc["bad-focal", "error"]
+    assert not (tmp_path / "out" / "sequences").exists()
