@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import importlib.util
 import logging
 import math
 import os
@@ -298,14 +299,11 @@ def _client(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:
             "distributed.scheduler.allowed-failures": 1,
         }
     )
-    import importlib.util
-
-    dashboard = ":0" if importlib.util.find_spec("bokeh") else None
     cluster = LocalCluster(
         n_workers=n,
         threads_per_worker=1,
         processes=True,
-        dashboard_address=dashboard,
+        dashboard_address=":0",  # a free port: other clusters may hold 8787
         silence_logs=logging.ERROR,
     )
     return Client(cluster), cluster
@@ -376,7 +374,7 @@ def run_campaign(
     if todo:
         client, cluster = _client(scheduler, workers)
         try:
-            if client.scheduler_info().get("services", {}).get("dashboard"):
+            if importlib.util.find_spec("bokeh") is not None:  # the dashboard needs bokeh
                 print(f"Dask dashboard: {client.dashboard_link}", file=sys.stderr)
             limit = spec.time_limit_s
             renders: dict[str, Any] = {}
@@ -511,6 +509,15 @@ def _fmt(v: Any) -> str:
     return "" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3g}"
 
 
+def _band_label(column: str) -> str:
+    return column[len("est.band_") : -len(".pos_cm")]
+
+
+def _band_top_m(label: str) -> float:
+    # "7-5m" -> 7, "<3m" -> 3 (band_label without spaces): the band's far end.
+    return float(label.lstrip("<").split("-")[0].rstrip("m"))
+
+
 def plot_errors(df: pd.DataFrame, path: Path) -> Path | None:
     """Left: mean position error of each cell's estimate against the first varying axis
     (median and range across the other axes) per estimator. Right: its CDF across cells per
@@ -524,7 +531,9 @@ def plot_errors(df: pd.DataFrame, path: Path) -> Path | None:
     if not len(ok):
         return None
     axis = next((a for a in _varying(ok) if a != "estimator"), "estimator")
-    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2))
+    bands = [c for c in ok.columns if c.startswith("est.band_") and c.endswith(".pos_cm")]
+    fig, axes = plt.subplots(1, 3 if bands else 2, figsize=(16 if bands else 11, 4.2))
+    left, right = axes[0], axes[1]
     for est, sub in ok.groupby("estimator"):
         g = sub.groupby(sub[axis].astype(str))["est.pos_cm"]
         x = list(g.median().index)
@@ -533,13 +542,26 @@ def plot_errors(df: pd.DataFrame, path: Path) -> Path | None:
         v = np.sort(sub["est.pos_cm"].to_numpy(dtype=float))
         frac = np.arange(len(v) + 1) / len(v)
         right.step(np.r_[v[0], v], frac, where="post", label=str(est))
+    if bands:
+        # Farthest band first (labels "7-5m", "5-3m", "< 3m").
+        bands.sort(key=lambda c: -_band_top_m(_band_label(c)))
+        names = sorted(ok["estimator"].astype(str).unique())
+        width = 0.8 / len(names)
+        for i, est in enumerate(names):
+            med = ok[ok["estimator"].astype(str) == est][bands].median()
+            at = np.arange(len(bands)) + (i - (len(names) - 1) / 2) * width
+            axes[2].bar(at, med.to_numpy(dtype=float), width, label=est)
+        axes[2].set_xticks(np.arange(len(bands)), [_band_label(b) for b in bands])
+        axes[2].set_xlabel("true range band")
+        axes[2].set_ylabel("mean position error [cm] (median over cells)")
+        axes[2].set_title("position error per range band")
     left.set_xlabel(axis)
     left.set_ylabel("mean position error [cm]")
     left.set_title(f"position error vs {axis} (median, min-max)")
     right.set_xlabel("mean position error [cm]")
     right.set_ylabel("fraction of cells")
     right.set_title("CDF across cells")
-    for ax in (left, right):
+    for ax in axes:
         ax.grid(alpha=0.3)
         ax.legend(title="estimator")
     fig.tight_layout()
