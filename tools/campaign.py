@@ -535,7 +535,9 @@ def plot_errors(df: pd.DataFrame, path: Path) -> Path | None:
     fig, axes = plt.subplots(1, 3 if bands else 2, figsize=(16 if bands else 11, 4.2))
     left, right = axes[0], axes[1]
     for est, sub in ok.groupby("estimator"):
-        g = sub.groupby(sub[axis].astype(str))["est.pos_cm"]
+        # Numbers sort as numbers (seed 10 after 9), anything else by its text.
+        numeric = pd.api.types.is_numeric_dtype(sub[axis])
+        g = sub.groupby(sub[axis] if numeric else sub[axis].astype(str))["est.pos_cm"]
         x = list(g.median().index)
         left.plot(x, g.median().to_numpy(), "o-", label=str(est))
         left.fill_between(x, g.min().to_numpy(), g.max().to_numpy(), alpha=0.15)
