@@ -404,12 +404,19 @@ def _register_rings(subparsers: Any) -> None:
     register(subparsers)
 
 
+def _register_campaign(subparsers: Any) -> None:
+    from satpose.tools.campaign import register
+
+    register(subparsers)
+
+
 EXTRA_COMMANDS: list[Callable[[Any], None]] = [
     colmap_cli.register,
     spin_cli.register,
     _register_stars,
     _register_bracket,
     _register_rings,
+    _register_campaign,
 ]
 
 

@@ -1,0 +1,201 @@
+"""`satpose campaign`: spec checks, a small campaign on a Dask LocalCluster, a cell that fails
+on purpose, resuming, and the time limit."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from satpose.datasets.errors import ConfigError
+from satpose.tools.campaign import read_results, run_campaign, run_cell
+from satpose.tools.campaign_spec import load_spec
+from satpose.tools.cli import main
+
+# 640x480 from 4.5 m: a small render on which the frontend finds the ring of seed 0's
+# paper-docking (at 7 m, or at 160x120 to 480x360 with 1 spp, it sees nothing and every cell
+# fails: no estimate).
+SPEC = """\
+name: test
+time_limit_s: 300
+base:
+  scenario: paper-docking
+  seed: 0
+  frames: 3
+  size: 640x480
+  spp: 2
+  perturb: {motion.start_position_m: [0.15, 0.05, 4.5]}
+axes:
+  estimator: [offline, kalman]
+  config:
+    plain: {compare: false, recording.images: false, recording.orb_points: false}
+    broken: {compare: maybe}
+"""
+"""Four cells, one render: the two `broken` cells fail on purpose (compare is a bool)."""
+
+
+def _write(tmp_path: Path, text: str, name: str = "spec.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    base = tmp_path_factory.mktemp("campaign")
+    spec = _write(base, SPEC)
+    out = base / "out"
+    assert main(["campaign", str(spec), "--out", str(out), "--workers", "2"]) == 0
+    return spec, out
+
+
+def test_spec_expands_the_product(tmp_path: Path) -> None:
+    spec = load_spec(_write(tmp_path, SPEC))
+    assert len(spec.cells) == 4
+    assert len({c.cell_id for c in spec.cells}) == 4
+    assert {(c.axes["estimator"], c.axes["config"]) for c in spec.cells} == {
+        ("offline", "plain"),
+        ("offline", "broken"),
+        ("kalman", "plain"),
+        ("kalman", "broken"),
+    }
+    broken = next(c for c in spec.cells if c.axes["config"] == "broken")
+    assert broken.config == {"compare": "maybe"}
+    plain = next(c for c in spec.cells if c.axes["config"] == "plain")
+    assert plain.config["recording"] == {"images": False, "orb_points": False}
+    # The same spec read again gives the same cell ids (what resuming relies on).
+    assert [c.cell_id for c in load_spec(tmp_path / "spec.yaml").cells] == [
+        c.cell_id for c in spec.cells
+    ]
+
+
+@pytest.mark.parametrize(
+    ("text", "key"),
+    [
+        ("name: x\nbase: {scenario: paper-docking}\nlimits: 3\n", "limits"),
+        ("base: {scenario: paper-docking}\naxes: {colour: [red]}\n", "axes.colour"),
+        ("base: {scenario: no-such-preset}\n", "base.scenario"),
+        ("base: {sequence: does/not/exist}\n", "base.sequence"),
+        ("base: {scenario: paper-docking}\naxes: {estimator: [online, ekf]}\n", "axes.estimator"),
+        (
+            "base: {scenario: paper-docking}\naxes: {config: {a: {backend.no_such_key: 1}}}\n",
+            "no_such_key",
+        ),
+        ("base: {scenario: paper-docking, perturb: {rig.wobble: 2}}\n", "wobble"),
+        ("base: {scenario: paper-docking}\naxes: {seed: [1, 2\n", "not valid YAML"),
+        ("base: {scenario: random}\n", "seed"),
+        ("base: {sequence: ., seed: 3}\n", "sequence"),
+    ],
+)
+def test_bad_spec_is_one_line_naming_the_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, key: str
+) -> None:
+    spec = _write(tmp_path, text)
+    with pytest.raises(ConfigError):
+        load_spec(spec)
+    assert main(["campaign", str(spec), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert err.startswith("satpose campaign: error: ") and str(spec) in err and key in err
+    assert not (tmp_path / "out").exists()  # refused before any work
+
+
+def test_results_table(campaign: tuple[Path, Path]) -> None:
+    _, out = campaign
+    df = read_results(out)
+    assert len(df) == 4 and df["cell"].is_unique
+    ok = df[df["config"] == "plain"]
+    broken = df[df["config"] == "broken"]
+    assert (ok["status"] == "ok").all(), ok["error"].tolist()
+    assert (broken["status"] == "failed").all()
+    assert broken["error"].str.contains("compare").all()
+    for col in ("est.pos_cm", "est.rot_deg", "est.ate_m", "est.rpe_trans_m", "total_s"):
+        assert np.isfinite(ok[col].to_numpy(dtype=float)).all() and (ok[col] > 0).all(), col
+    assert (ok["peak_rss_mb"] > 0).all()
+    assert {"est.nees_mean", "est.bias.depth_cm", "est.bias.depth_sd_cm"} <= set(df.columns)
+    # Each estimator's own trajectory is the one under est.
+    off = ok[ok["estimator"] == "offline"].iloc[0]
+    assert off["est.pos_cm"] == off["offline.pos_cm"]
+    # One render shared by the four cells, and the run folders on the workers' path.
+    assert len(list((out / "sequences").iterdir())) == 1
+    for run in ok["run_path"]:
+        assert (Path(run) / "metrics.json").is_file()
+    summary = (out / "summary.md").read_text()
+    assert "| ok | 2 |" in summary and "| failed | 2 |" in summary
+    assert (out / "pos_error.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_rerun_skips_done_cells(campaign: tuple[Path, Path]) -> None:
+    spec, out = campaign
+    before = read_results(out)
+    outcome = run_campaign(load_spec(spec), out)  # nothing to do: no cluster is started
+    assert (outcome.ran, outcome.skipped) == (0, 4)
+    pd.testing.assert_frame_equal(read_results(out), before)
+
+
+def test_resume_runs_only_missing_cells(campaign: tuple[Path, Path], tmp_path: Path) -> None:
+    spec, out = campaign
+    # A copy of the campaign folder missing one finished cell (as after a Ctrl-C).
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    before = read_results(copy)
+    gone = before[(before["status"] == "ok") & (before["estimator"] == "kalman")].iloc[0]
+    before[before["cell"] != gone["cell"]].to_parquet(copy / "results.parquet", index=False)
+    outcome = run_campaign(load_spec(spec), copy, workers=1)
+    assert (outcome.ran, outcome.skipped) == (1, 3)
+    table = read_results(copy)
+    assert pd.api.types.is_integer_dtype(table["seed"])  # old and new rows: one column type
+    after = table.set_index("cell")
+    assert set(after.index) == set(before["cell"])
+    # The same cell on the same (cached) render gives the same metrics, bit for bit.
+    again = after.loc[gone["cell"]]
+    assert again["status"] == "ok"
+    for col in ("est.pos_cm", "est.rot_deg", "est.ate_m", "est.nees_mean"):
+        assert again[col] == gone[col], col
+
+
+def test_time_limit_is_a_timeout_row(campaign: tuple[Path, Path], tmp_path: Path) -> None:
+    spec, out = campaign
+    cell = next(c for c in load_spec(spec).cells if c.axes["config"] == "plain")
+    folder = next((out / "sequences").iterdir())
+    rendered = {"path": str(folder), "render_s": 0.0, "status": "ok", "error": ""}
+    row = run_cell(cell, rendered, str(tmp_path), 1e-6)
+    assert row["status"] == "timeout" and "time limit" in row["error"]
+    assert not (tmp_path / "cells" / cell.cell_id / "run").exists()  # no half-written run
+
+
+SPECS = sorted((Path(__file__).parents[2] / "benchmarks" / "campaigns").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("spec", SPECS, ids=lambda p: p.name)
+def test_shipped_specs_load(spec: Path) -> None:
+    assert len(SPECS) >= 2
+    loaded = load_spec(spec)
+    assert loaded.cells and loaded.time_limit_s > 0
+
+
+def test_out_that_is_a_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    spec = _write(tmp_path, SPEC)
+    out = tmp_path / "taken"
+    out.write_text("not a folder")
+    assert main(["campaign", str(spec), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(out) in err
+
+
+def test_perturbation_value_fails_its_cells_only(tmp_path: Path) -> None:
+    spec = _write(
+        tmp_path,
+        "base: {scenario: paper-docking, frames: 2, size: 160x120}\n"
+        "axes:\n  perturb:\n    wide: {rig.baseline_m: wide}\n    bad-focal: {rig.focal_px: -1}\n",
+    )
+    # Both cells fail on the client (no render, no cluster) and land in the table.
+    outcome = run_campaign(load_spec(spec), tmp_path / "out")
+    assert outcome.statuses == {"ok": 0, "failed": 2, "timeout": 0}
+    df = read_results(tmp_path / "out").set_index("perturb")
+    assert "baseline_m" in df.loc["wide", "error"]
+    assert "focal" in df.loc["bad-focal", "error"]
+    assert not (tmp_path / "out" / "sequences").exists()

@@ -1,0 +1,670 @@
+"""`satpose campaign SPEC.yaml --out DIR`: Monte Carlo and reprocessing campaigns on Dask.
+
+A campaign (`satpose.tools.campaign_spec`) is the product of axes; each cell is one task
+``render (synthetic, cached) -> run_pipeline -> evaluate_run`` on a Dask distributed cluster:
+a `LocalCluster` (one single-threaded worker process per core) or an existing scheduler
+(``--scheduler tcp://HOST:8786``). Files (renders, run folders) are written on the worker's
+file system under DIR, so remote workers need DIR on a shared path; the results row of each
+cell is shipped back to the client as data and written to ``DIR/results.parquet``
+(atomically, after every cell), with ``DIR/summary.md`` and ``DIR/pos_error.png`` at the end.
+A cell already in the table is skipped on a re-run (docs/campaigns.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import importlib.util
+import logging
+import math
+import os
+import resource
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from satpose.datasets.errors import SatposeError
+from satpose.datasets.sequence import atomic_write
+from satpose.tools.campaign_spec import (
+    AXES,
+    CampaignSpec,
+    Cell,
+    load_spec,
+    scenario_hash,
+    scenario_of,
+)
+
+log = logging.getLogger(__name__)
+
+RESULTS = "results.parquet"
+SUMMARY = "summary.md"
+PLOT = "pos_error.png"
+STATUSES = ("ok", "failed", "timeout")
+THREAD_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENCV_FOR_THREADS_NUM": "1",
+}
+"""Set in every LocalCluster worker process before it starts (Dask's nanny
+``pre-spawn-environ``): one cell per core, so no library may start its own thread pool."""
+
+
+class CampaignError(SatposeError):
+    """A campaign cannot start or its output folder is unusable."""
+
+
+class CellTimeout(Exception):
+    """A cell exceeded its time limit (raised from the per-frame progress hooks)."""
+
+
+# --------------------------------------------------------------------------------------------
+# On the worker
+# --------------------------------------------------------------------------------------------
+
+
+def _pin_threads() -> None:
+    """One thread per library in this process (OpenCV, Dr.Jit/Mitsuba; BLAS via env)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    try:
+        import drjit
+
+        drjit.set_thread_count(1)
+    except (ImportError, AttributeError):  # pragma: no cover - drjit ships with mitsuba
+        pass
+
+
+def _deadline_hook(start: float, limit_s: float, what: str) -> Callable[..., None]:
+    def check(*_args: Any) -> None:
+        if time.perf_counter() - start > limit_s:
+            raise CellTimeout(f"{what} exceeded the time limit of {limit_s:g} s")
+
+    return check
+
+
+def _peak_rss_mb() -> float:
+    # Linux reports ru_maxrss in KiB: the worker process's peak so far.
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _worker_name() -> str:
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().address)
+    except (ImportError, ValueError):
+        return f"pid {os.getpid()}"
+
+
+def render_cached(scenario: Any, folder: str, limit_s: float) -> dict[str, Any]:
+    """Render ``scenario`` into ``folder`` unless a complete render is there (the folder name
+    is the scenario's content hash). Never raises: returns ``{"path", "render_s", "error",
+    "status"}`` so Dask's retry is left for a worker that died."""
+    from satpose.datasets.render import render_sequence
+
+    _pin_threads()
+    out = Path(folder)
+    start = time.perf_counter()
+    if (out / "sequence.yaml").is_file():
+        return {"path": folder, "render_s": 0.0, "status": "ok", "error": ""}
+    try:
+        render_sequence(
+            scenario, out, overwrite=True, progress=_deadline_hook(start, limit_s, "render")
+        )
+    except CellTimeout as exc:
+        return {"path": folder, "render_s": None, "status": "timeout", "error": str(exc)}
+    except Exception as exc:  # a cell's failure, recorded with its message
+        return {"path": folder, "render_s": None, "status": "failed", "error": _message(exc)}
+    return {
+        "path": folder,
+        "render_s": time.perf_counter() - start,
+        "status": "ok",
+        "error": "",
+    }
+
+
+def _message(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+def _column(name: str) -> str:
+    return {"online filtered": "online", "per-frame (frontend)": "frontend"}.get(
+        name, name.replace(" ", "_")
+    )
+
+
+def metric_columns(results: dict[str, Any], main: str) -> dict[str, Any]:
+    """Flatten `evaluate_run`'s metrics into ``{trajectory}.{metric}`` columns (bands as
+    ``{trajectory}.band_{label}.{metric}``, bias as ``{trajectory}.bias.{term}``); the chosen
+    estimator's main trajectory is repeated under the prefix ``est.``."""
+    out: dict[str, Any] = {}
+    for name, m in results.items():
+        plain = asdict(m)
+        plain.pop("per_frame", None)
+        bands = plain.pop("bands", {})
+        bias = plain.pop("bias", {})
+        flat = dict(plain)
+        for label, b in bands.items():
+            for k, v in b.items():
+                flat[f"band_{label.replace(' ', '')}.{k}"] = v
+        for k, v in bias.items():
+            flat[f"bias.{k}"] = v
+        prefixes = [_column(name)] + (["est"] if name == main else [])
+        for prefix in prefixes:
+            for k, v in flat.items():
+                out[f"{prefix}.{k}"] = np.nan if v is None else v
+    return out
+
+
+def run_cell(cell: Cell, rendered: dict[str, Any] | None, out_dir: str, limit_s: float) -> dict:
+    """One cell on a worker: run the pipeline on the (rendered or recorded) sequence and
+    evaluate it. Never raises for the cell's own failures: the returned row carries
+    ``status`` and ``error``. Files go to ``out_dir/cells/<cell id>/run``."""
+    from satpose.datasets.config import from_plain
+    from satpose.tools.evaluate import evaluate_run, write_metrics
+    from satpose.tools.pipeline import PipelineConfig, run_pipeline
+
+    _pin_threads()
+    row: dict[str, Any] = {"cell": cell.cell_id, **cell.axes}
+    row.update(worker=_worker_name(), render_s=np.nan, run_s=np.nan, eval_s=np.nan)
+    t0 = time.perf_counter()
+    try:
+        if rendered is not None:
+            row["render_s"] = rendered["render_s"]
+            if rendered["status"] != "ok":
+                row.update(status=rendered["status"], error=f"render: {rendered['error']}")
+                return _finish(row, t0)
+            sequence = rendered["path"]
+        else:
+            sequence = str(cell.sequence)
+        row["sequence_path"] = sequence
+        config = from_plain(PipelineConfig, cell.config, "config")
+        run = Path(out_dir) / "cells" / cell.cell_id / "run"
+        row["run_path"] = str(run)
+        estimator = cell.axes["estimator"]
+        start = time.perf_counter()
+        result = run_pipeline(
+            Path(sequence),
+            estimator,
+            run,
+            config,
+            overwrite=True,
+            progress=_deadline_hook(t0, limit_s, "run"),
+        )
+        row["run_s"] = time.perf_counter() - start
+        row["frames_with_pose"] = sum(m.pose is not None for m in result.measurements)
+        if time.perf_counter() - t0 > limit_s:
+            raise CellTimeout(f"run exceeded the time limit of {limit_s:g} s")
+        start = time.perf_counter()
+        metrics = evaluate_run(Path(sequence), run)
+        write_metrics(metrics, run, Path(sequence))
+        row["eval_s"] = time.perf_counter() - start
+        main = {"online": "online filtered"}.get(estimator, estimator)
+        if main not in metrics:
+            raise CampaignError(f"{estimator}: no estimate matched the ground truth (< 2 frames)")
+        row.update(metric_columns(metrics, main))
+        row.update(status="ok", error="")
+    except CellTimeout as exc:
+        row.update(status="timeout", error=str(exc))
+    except Exception as exc:  # a cell's failure, recorded with its message
+        row.update(status="failed", error=_message(exc))
+    return _finish(row, t0)
+
+
+def _finish(row: dict[str, Any], t0: float) -> dict[str, Any]:
+    row["total_s"] = time.perf_counter() - t0
+    row["peak_rss_mb"] = _peak_rss_mb()
+    return row
+
+
+# --------------------------------------------------------------------------------------------
+# On the client
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class CampaignOutcome:
+    """What `run_campaign` did: cells in the spec, skipped (already in the table), run now,
+    and the status counts of the whole table."""
+
+    cells: int
+    skipped: int
+    ran: int
+    statuses: dict[str, int]
+    elapsed_s: float
+    table: Path
+
+
+def read_results(out: Path) -> pd.DataFrame:
+    """The results table of a campaign folder (empty if there is none yet)."""
+    path = Path(out) / RESULTS
+    if not path.is_file():
+        return pd.DataFrame()
+    try:
+        return pd.read_parquet(path)
+    except Exception as exc:
+        raise CampaignError(f"{path}: cannot read the results table ({_message(exc)})") from None
+
+
+def _write_table(rows: list[dict[str, Any]], path: Path) -> pd.DataFrame:
+    df = pd.DataFrame(rows)
+    first = ["cell", *[a for a in AXES if a in df.columns], "status", "error"]
+    df = df[first + [c for c in df.columns if c not in first]]
+    for col in df.columns:  # a column mixing strings and numbers is written as strings
+        if df[col].dtype == object:
+            kinds = {_kind(v) for v in df[col] if v is not None and v == v}
+            if len(kinds) > 1:
+                df[col] = df[col].map(lambda v: None if v is None or v != v else str(v))
+    atomic_write(path, lambda tmp: df.to_parquet(tmp, index=False))
+    return df
+
+
+def _kind(v: Any) -> str:
+    if isinstance(v, (bool, np.bool_)):
+        return "bool"
+    if isinstance(v, (int, float, np.number)):
+        return "number"
+    return type(v).__name__
+
+
+def _client(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:
+    import dask
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        if workers is not None:
+            raise CampaignError(
+                "--workers sizes the LocalCluster; with --scheduler the cluster has its own"
+            )
+        try:
+            return Client(scheduler, timeout="10s"), None
+        except (OSError, TimeoutError, ValueError) as exc:
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise CampaignError(f"cannot reach the Dask scheduler {scheduler}: {msg}") from None
+    n = workers or os.cpu_count() or 1
+    env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
+    # None unsets: Dask's MALLOC_TRIM_THRESHOLD_ turns off glibc's dynamic mmap threshold, and
+    # every image-sized array is then mmapped and page-faulted anew; that doubled the
+    # pipeline's time per cell here (1.8 -> 3.5 s) and slowed renders by a fifth.
+    env["MALLOC_TRIM_THRESHOLD_"] = None
+    dask.config.set(
+        {
+            "distributed.nanny.pre-spawn-environ": {**env, **THREAD_ENV},
+            # A worker that dies mid-cell: the cell is tried once more, then recorded failed.
+            "distributed.scheduler.allowed-failures": 1,
+        }
+    )
+    cluster = LocalCluster(
+        n_workers=n,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=":0",  # a free port: other clusters may hold 8787
+        silence_logs=logging.ERROR,
+    )
+    return Client(cluster), cluster
+
+
+def run_campaign(
+    spec: CampaignSpec,
+    out: Path,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    retry_failed: bool = False,
+    cache: Path | None = None,
+    on_row: Callable[[dict[str, Any], int, int], None] | None = None,
+) -> CampaignOutcome:
+    """Run the cells of ``spec`` not yet in ``out/results.parquet`` on Dask; write the table
+    after each finished cell, then the summary and the plot.
+
+    Args:
+        scheduler: address of a running Dask scheduler; None starts a LocalCluster.
+        workers: LocalCluster worker processes (default: the number of cores).
+        retry_failed: run cells recorded as failed or timeout again.
+        cache: folder of the rendered sequences (default ``out/sequences``), keyed by the
+            scenario's content hash.
+        on_row: called with (row, cells done, cells to do) after each cell.
+    """
+    from distributed import as_completed
+
+    start = time.perf_counter()
+    out = Path(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CampaignError(
+            f"{out}: cannot use as campaign folder ({exc.strerror or exc})"
+        ) from None
+    cache = Path(cache) if cache is not None else out / "sequences"
+    old = read_results(out)
+    rows: list[dict[str, Any]] = old.to_dict("records") if len(old) else []
+    done = {r["cell"] for r in rows if not retry_failed or r.get("status") == "ok"}
+    rows = [
+        r for r in rows if r["cell"] in done or r["cell"] not in {c.cell_id for c in spec.cells}
+    ]
+    todo = [c for c in spec.cells if c.cell_id not in done]
+    skipped = len(spec.cells) - len(todo)
+    table = out / RESULTS
+    # Scenarios first, on the client: a perturbation value the scenario refuses fails its
+    # cells without a task; the others are grouped by render.
+    scenarios: dict[str, Any] = {}
+    for cell in list(todo):
+        if cell.sequence is None:
+            try:
+                scenarios[cell.cell_id] = scenario_of(cell)
+            except SatposeError as exc:
+                rows.append(
+                    {
+                        "cell": cell.cell_id,
+                        **cell.axes,
+                        "status": "failed",
+                        "error": f"perturb: {exc}",
+                    }
+                )
+                todo.remove(cell)
+                if on_row is not None:
+                    on_row(rows[-1], 0, len(todo))
+    if rows:
+        _write_table(rows, table)
+    if todo:
+        client, cluster = _client(scheduler, workers)
+        try:
+            if importlib.util.find_spec("bokeh") is not None:  # the dashboard needs bokeh
+                print(f"Dask dashboard: {client.dashboard_link}", file=sys.stderr)
+            limit = spec.time_limit_s
+            renders: dict[str, Any] = {}
+            futures = []
+            outdir = str(out.resolve())
+            # Task keys name the output folder too: two campaigns sharing a scheduler must not
+            # share each other's results.
+            tag = hashlib.sha1(f"{outdir}|{cache.resolve()}".encode()).hexdigest()[:8]
+            for cell in todo:
+                rendered = None
+                if cell.sequence is None:
+                    scenario = scenarios[cell.cell_id]
+                    h = scenario_hash(scenario)
+                    if h not in renders:
+                        folder = str((cache / f"{scenario.name}-{h}").resolve())
+                        renders[h] = client.submit(
+                            render_cached,
+                            scenario,
+                            folder,
+                            limit,
+                            key=f"render-{h}-{tag}",
+                            retries=1,
+                        )
+                    rendered = renders[h]
+                futures.append(
+                    client.submit(
+                        run_cell,
+                        cell,
+                        rendered,
+                        outdir,
+                        limit,
+                        key=f"cell-{cell.cell_id}-{tag}",
+                        retries=1,
+                    )
+                )
+            by_key = {f.key: c for f, c in zip(futures, todo, strict=True)}
+            finished = 0
+            for fut in as_completed(futures):
+                cell = by_key[fut.key]
+                try:
+                    row = fut.result()
+                except Exception as exc:  # the worker died twice, or the task was lost
+                    row = {
+                        "cell": cell.cell_id,
+                        **cell.axes,
+                        "status": "failed",
+                        "error": f"worker: {_message(exc)}",
+                    }
+                rows.append(row)
+                finished += 1
+                _write_table(rows, table)
+                if on_row is not None:
+                    on_row(row, finished, len(todo))
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    df = _write_table(rows, table) if rows else pd.DataFrame()
+    write_summary(df, out, spec)
+    statuses = {s: int((df["status"] == s).sum()) for s in STATUSES} if len(df) else {}
+    return CampaignOutcome(
+        cells=len(spec.cells),
+        skipped=skipped,
+        ran=len(todo),
+        statuses=statuses,
+        elapsed_s=time.perf_counter() - start,
+        table=table,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Summary and plot
+# --------------------------------------------------------------------------------------------
+
+SUMMARY_METRICS = {
+    "est.pos_cm": "pos [cm]",
+    "est.rot_deg": "rot [deg]",
+    "est.ate_m": "ATE [m]",
+    "est.rpe_trans_m": "RPE [m]",
+    "est.nees_in_95": "NEES in 95%",
+    "total_s": "time [s]",
+    "peak_rss_mb": "peak RSS [MB]",
+}
+
+
+def _varying(df: pd.DataFrame) -> list[str]:
+    return [a for a in AXES if a in df.columns and df[a].astype(str).nunique() > 1]
+
+
+def write_summary(df: pd.DataFrame, out: Path, spec: CampaignSpec) -> list[Path]:
+    """``summary.md`` (status counts, medians per estimator and varying axis, failures) and
+    ``pos_error.png``; returns the files written."""
+    lines = [f"# Campaign {spec.name}", "", f"Spec: `{spec.path}`; {len(df)} cells in the table."]
+    written = []
+    if len(df):
+        counts = df["status"].value_counts()
+        lines += ["", "| status | cells |", "|---|---|"]
+        lines += [f"| {s} | {int(counts.get(s, 0))} |" for s in STATUSES]
+        ok = df[df["status"] == "ok"]
+        group = [a for a in _varying(df) if a != "seed"] or ["estimator"]
+        metrics = [m for m in SUMMARY_METRICS if m in ok.columns]
+        if len(ok) and metrics:
+            med = ok.groupby(group, dropna=False)[metrics].median(numeric_only=True)
+            lines += [
+                "",
+                f"Medians over the ok cells (across seeds), by {', '.join(group)}:",
+                "",
+                "| " + " | ".join(group + [SUMMARY_METRICS[m] for m in metrics]) + " |",
+                "|" + "---|" * (len(group) + len(metrics)),
+            ]
+            for key, vals in med.iterrows():
+                keys = key if isinstance(key, tuple) else (key,)
+                cells = [str(k) for k in keys] + [_fmt(vals[m]) for m in metrics]
+                lines.append("| " + " | ".join(cells) + " |")
+        bad = df[df["status"] != "ok"]
+        if len(bad):
+            lines += ["", "Cells not ok:", ""]
+            for _, r in bad.iterrows():
+                axes = ", ".join(f"{a}={r[a]}" for a in AXES if a in df.columns)
+                lines.append(f"- `{r['cell']}` ({axes}): {r['status']}: {r['error']}")
+        png = plot_errors(df, out / PLOT)
+        if png is not None:
+            written.append(png)
+            lines += ["", f"![position error]({PLOT})"]
+    path = out / SUMMARY
+    text = "\n".join(lines) + "\n"
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    return [path, *written]
+
+
+def _fmt(v: Any) -> str:
+    return "" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3g}"
+
+
+def _band_label(column: str) -> str:
+    return column[len("est.band_") : -len(".pos_cm")]
+
+
+def _band_top_m(label: str) -> float:
+    # "7-5m" -> 7, "<3m" -> 3 (band_label without spaces): the band's far end.
+    return float(label.lstrip("<").split("-")[0].rstrip("m"))
+
+
+def plot_errors(df: pd.DataFrame, path: Path) -> Path | None:
+    """Left: mean position error of each cell's estimate against the first varying axis
+    (median and range across the other axes) per estimator. Right: its CDF across cells per
+    estimator. None when no cell is ok."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ok = df[(df["status"] == "ok")] if "est.pos_cm" in df.columns else df.iloc[:0]
+    if not len(ok):
+        return None
+    axis = next((a for a in _varying(ok) if a != "estimator"), "estimator")
+    bands = [c for c in ok.columns if c.startswith("est.band_") and c.endswith(".pos_cm")]
+    fig, axes = plt.subplots(1, 3 if bands else 2, figsize=(16 if bands else 11, 4.2))
+    left, right = axes[0], axes[1]
+    for est, sub in ok.groupby("estimator"):
+        # Numbers sort as numbers (seed 10 after 9), anything else by its text.
+        numeric = pd.api.types.is_numeric_dtype(sub[axis])
+        g = sub.groupby(sub[axis] if numeric else sub[axis].astype(str))["est.pos_cm"]
+        x = list(g.median().index)
+        left.plot(x, g.median().to_numpy(), "o-", label=str(est))
+        left.fill_between(x, g.min().to_numpy(), g.max().to_numpy(), alpha=0.15)
+        v = np.sort(sub["est.pos_cm"].to_numpy(dtype=float))
+        frac = np.arange(len(v) + 1) / len(v)
+        right.step(np.r_[v[0], v], frac, where="post", label=str(est))
+    if bands:
+        # Farthest band first (labels "7-5m", "5-3m", "< 3m").
+        bands.sort(key=lambda c: -_band_top_m(_band_label(c)))
+        names = sorted(ok["estimator"].astype(str).unique())
+        width = 0.8 / len(names)
+        for i, est in enumerate(names):
+            med = ok[ok["estimator"].astype(str) == est][bands].median()
+            at = np.arange(len(bands)) + (i - (len(names) - 1) / 2) * width
+            axes[2].bar(at, med.to_numpy(dtype=float), width, label=est)
+        axes[2].set_xticks(np.arange(len(bands)), [_band_label(b) for b in bands])
+        axes[2].set_xlabel("true range band")
+        axes[2].set_ylabel("mean position error [cm] (median over cells)")
+        axes[2].set_title("position error per range band")
+    left.set_xlabel(axis)
+    left.set_ylabel("mean position error [cm]")
+    left.set_title(f"position error vs {axis} (median, min-max)")
+    right.set_xlabel("mean position error [cm]")
+    right.set_ylabel("fraction of cells")
+    right.set_title("CDF across cells")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(title="estimator")
+    fig.tight_layout()
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110))
+    plt.close(fig)
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# CLI
+# --------------------------------------------------------------------------------------------
+
+
+def _handler(args: argparse.Namespace) -> None:
+    import distributed  # noqa: F401  (creates its loggers, which set their own levels)
+    from tqdm import tqdm
+
+    # The in-process scheduler logs every connection at INFO: keep the console to the bar.
+    level = max(logging.WARNING, logging.getLogger("satpose").getEffectiveLevel())
+    for name in list(logging.root.manager.loggerDict):
+        if name == "distributed" or name.startswith("distributed."):
+            logging.getLogger(name).setLevel(level)
+    spec = load_spec(args.spec)
+    table = read_results(args.out)
+    print(
+        f"campaign {spec.name}: {len(spec.cells)} cells"
+        + (f", {len(table)} rows already in {args.out / RESULTS}" if len(table) else ""),
+        flush=True,
+    )
+    bar = tqdm(
+        desc=f"campaign {spec.name}", unit="cell", file=sys.stderr, dynamic_ncols=True, delay=1.0
+    )
+
+    def on_row(row: dict[str, Any], done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+        if row.get("status") != "ok":
+            bar.write(f"cell {row['cell']}: {row.get('status')}: {row.get('error')}")
+
+    try:
+        result = run_campaign(
+            spec,
+            args.out,
+            scheduler=args.scheduler,
+            workers=args.workers,
+            retry_failed=args.retry_failed,
+            cache=args.cache,
+            on_row=on_row,
+        )
+    finally:
+        bar.close()
+    counts = ", ".join(f"{n} {s}" for s, n in result.statuses.items())
+    print(
+        f"{result.cells} cells: {result.skipped} already done, {result.ran} run in "
+        f"{result.elapsed_s:.1f} s; table: {counts}; wrote {result.table}, "
+        f"{args.out / SUMMARY}"
+    )
+
+
+def _positive(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
+    return v
+
+
+def register(subparsers: Any) -> None:
+    """Add ``satpose campaign``."""
+    p = subparsers.add_parser(
+        "campaign",
+        help="Monte Carlo / reprocessing campaign on Dask: the product of a spec's axes",
+        description="Run every cell of a campaign spec (render -> run -> eval) on a Dask "
+        "cluster and collect one row per cell in DIR/results.parquet, with DIR/summary.md and "
+        "a plot. Cells already in the table are skipped (docs/campaigns.md).",
+    )
+    p.add_argument("spec", type=Path, metavar="SPEC.yaml", help="campaign spec")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="campaign folder")
+    p.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:8786",
+        help="an existing Dask scheduler (DIR must be on a path the workers share)",
+    )
+    p.add_argument(
+        "--workers",
+        type=_positive,
+        help="LocalCluster worker processes, one thread each (default: the number of cores)",
+    )
+    p.add_argument(
+        "--cache",
+        type=Path,
+        metavar="DIR",
+        help="rendered sequences, by scenario content hash (default: OUT/sequences)",
+    )
+    p.add_argument(
+        "--retry-failed", action="store_true", help="run cells recorded as failed/timeout again"
+    )
+    p.set_defaults(handler=_handler)
