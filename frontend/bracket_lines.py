@@ -1081,8 +1081,11 @@ class PartialTracker:
     frame on, when it has been followed over at least ``min_frames`` frames and every other
     candidate has been dropped (while two live on, both explain every frame so far: nothing
     is reported). A frame whose search
-    finds a single consistent pose is adopted at once. An adopted track is followed with its
-    prediction (`detect_partial` with ``predicted``); when lost, the search starts afresh.
+    finds a single consistent pose is adopted at once, unless it departs (outside the gate)
+    from the adopted track lost within the last ``max_misses + 1`` frames: one frame's pose
+    does not overrule the labelling followed before the loss, so it only starts a candidate.
+    An adopted track is followed with its prediction (`detect_partial` with ``predicted``);
+    when lost, the search starts afresh.
 
     Args:
         K: 3x3 intrinsics of the undistorted images.
@@ -1113,6 +1116,7 @@ class PartialTracker:
         self.max_candidates = max_candidates
         self.track: _Track | None = None
         self.candidates: list[_Track] = []
+        self.lost: _Track | None = None  # the adopted track lost last, for `max_misses` frames
 
     def step(self, k: int, image: np.ndarray) -> StrutDetection:
         """Detect in frame ``k`` (increasing) of the undistorted grey ``image``."""
@@ -1125,15 +1129,36 @@ class PartialTracker:
             if det.result is not None and det.result.pose is not None:
                 self.track.poses.append((k, det.result.pose))
                 return det
-            self.track = None  # lost: search afresh
+            self.lost = self.track  # lost: search afresh
+            self.track = None
             self.candidates = []
         det = detect_partial(image, self.K, self.geometry, self.fraction, cfg, None, prep)
+        ctr = self.geometry.vertices_m.mean(axis=0)
+        if self.lost is not None and k - self.lost.poses[-1][0] > self.max_misses + 1:
+            self.lost = None  # too long ago to say anything
         if det.observation is not None and det.result is not None and det.result.pose is not None:
+            lost = self.lost
+            if lost is not None and not _within_gate(det.result.pose, lost.predict(k), cfg, ctr):
+                # One frame's single pose against the labelling followed over the frames
+                # before the loss: not adopted at once. It starts a candidate like any
+                # alternative, and the lost track may come back.
+                self.candidates = [_Track([(k, det.result.pose)], det)]
+                return StrutDetection(
+                    None,
+                    None,
+                    det.segments,
+                    det.candidates,
+                    reason=(
+                        f"labelling ambiguous: the only consistent pose departs from the track "
+                        f"lost after frame {lost.poses[-1][0]}"
+                    ),
+                    hypotheses=det.hypotheses,
+                )
             self.track = _Track([(k, det.result.pose)], det)
             self.candidates = []
+            self.lost = None
             return det
         free = list(det.alternatives)
-        ctr = self.geometry.vertices_m.mean(axis=0)
         for t in self.candidates:
             pred = t.predict(k)
             near = [
@@ -1162,7 +1187,7 @@ class PartialTracker:
             oldest = max(hit, key=lambda t: len(t.poses))
             age = len(oldest.poses)
             if age >= self.min_frames and len(self.candidates) == 1:
-                self.track, self.candidates = oldest, []
+                self.track, self.candidates, self.lost = oldest, [], None
                 return oldest.detection
         if not det.alternatives:
             return det

@@ -174,3 +174,33 @@ def test_tracker_never_reports_a_wrong_labelling() -> None:
             reported.append(k)
             assert _errors(det.result.pose, T, V_SKEW)[0] < 3.0, k
     assert reported[-2:] == [5, 6], reported
+
+
+def test_one_frame_does_not_overrule_the_track_lost_before_it() -> None:
+    """A track adopted at frame 0 is lost at frame 1 (no struts). At frame 2 the image shows
+    one consistent pose 60 deg of roll away from the lost track's prediction: it is not
+    adopted at once but refused as departing from the lost track (a fresh single pose right
+    after a loss was the one mislabelled frame on the family's validation seeds). Shown over
+    the following frames, it is reported once the tracker settles on it (frame 7 here: the
+    static view fits two poses in frames 3-6), and only correctly."""
+    frac = 0.2
+    geo = BracketGeometry(vertices_m=V_SKEW)
+    tr = PartialTracker(K, geo, frac, CFG)
+    T0 = view(V_SKEW, 25.0, 30.0, 1.2, frac)
+    det = tr.step(0, drawn(V_SKEW, T0, frac, seed=0))
+    assert det.result is not None and det.result.pose is not None, det.reason
+    det = tr.step(1, drawn(V_SKEW, T0, frac, seed=1, struts=False))
+    assert det.observation is None
+    T1 = view(V_SKEW, 25.0, 90.0, 1.2, frac)
+    det = tr.step(2, drawn(V_SKEW, T1, frac, seed=2))
+    assert det.observation is None
+    assert "departs from the track lost after frame 0" in det.reason, det.reason
+    reported = []
+    for k in range(3, 9):
+        det = tr.step(k, drawn(V_SKEW, T1, frac, seed=k))
+        if det.result is not None and det.result.pose is not None:
+            reported.append(k)
+            # a near-double P3P root a few degrees off may be taken (measured 3.7 deg at
+            # frame 8); the rejected labelling is 60 deg away
+            assert _errors(det.result.pose, T1, V_SKEW)[0] < 6.0, k
+    assert reported and reported[-1] == 8, reported
