@@ -31,6 +31,7 @@ import pandas as pd
 
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.sequence import atomic_write
+from satpose.tools.argtypes import positive_int
 from satpose.tools.campaign_spec import (
     AXES,
     CampaignSpec,
@@ -627,16 +628,6 @@ def _handler(args: argparse.Namespace) -> None:
     )
 
 
-def _positive(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
-    return v
-
-
 def register(subparsers: Any) -> None:
     """Add ``satpose campaign``."""
     p = subparsers.add_parser(
@@ -655,7 +646,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument(
         "--workers",
-        type=_positive,
+        type=positive_int,
         help="LocalCluster worker processes, one thread each (default: the number of cores)",
     )
     p.add_argument(

@@ -20,6 +20,7 @@ import yaml
 
 from satpose.datasets.errors import ConfigError, SatposeError
 from satpose.tools import colmap_cli, spin_cli
+from satpose.tools.argtypes import positive_int
 
 if TYPE_CHECKING:
     from satpose.datasets.scenarios import Scenario
@@ -43,20 +44,10 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
-    return v
-
-
 def _render_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--frames", type=_positive_int, help="render only the first N frames")
+    p.add_argument("--frames", type=positive_int, help="render only the first N frames")
     p.add_argument("--size", type=_size, metavar="WxH", help="image size (same field of view)")
-    p.add_argument("--spp", type=_positive_int, help="samples per pixel")
+    p.add_argument("--spp", type=positive_int, help="samples per pixel")
     p.add_argument(
         "--seed", type=int, help="seed of textures and noise (random: also of the scene)"
     )
