@@ -145,20 +145,22 @@ def _column(name: str) -> str:
 
 def metric_columns(results: dict[str, Any], main: str) -> dict[str, Any]:
     """Flatten `evaluate_run`'s metrics into ``{trajectory}.{metric}`` columns (bands as
-    ``{trajectory}.band_{label}.{metric}``, bias as ``{trajectory}.bias.{term}``); the chosen
+    ``{trajectory}.band_{label}.{metric}``, bias and the SPEC score as ``{trajectory}.bias.{term}``
+    and ``{trajectory}.spec.{term}``); the chosen
     estimator's main trajectory is repeated under the prefix ``est.``."""
     out: dict[str, Any] = {}
     for name, m in results.items():
         plain = asdict(m)
         plain.pop("per_frame", None)
         bands = plain.pop("bands", {})
-        bias = plain.pop("bias", {})
+        nested = {key: plain.pop(key, {}) for key in ("bias", "spec")}
         flat = dict(plain)
         for label, b in bands.items():
             for k, v in b.items():
                 flat[f"band_{label.replace(' ', '')}.{k}"] = v
-        for k, v in bias.items():
-            flat[f"bias.{k}"] = v
+        for key, values in nested.items():
+            for k, v in values.items():
+                flat[f"{key}.{k}"] = v
         prefixes = [_column(name)] + (["est"] if name == main else [])
         for prefix in prefixes:
             for k, v in flat.items():

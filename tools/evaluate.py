@@ -17,7 +17,10 @@ comparison, the frontend's per-frame poses):
   frame), computed on the estimate expressed in the truth's body axes (``T_est R_off``);
 - NEES of the 6-D pose error (with the body-frame offset applied) and the fraction of frames
   inside the 95 % chi-square(6) interval, where a covariance exists;
-- the spin rate error [deg per frame] where the truth has angular velocities.
+- the spin rate error [deg per frame] where the truth has angular velocities;
+- the ESA SPEC score (`satpose.tools.metrics.spec_score`: relative translation plus rotation
+  error, each zeroed below its threshold; rotation after the body-frame offset, like the
+  rotation errors above).
 """
 
 from __future__ import annotations
@@ -38,12 +41,14 @@ from satpose.tools.files import atomic_write, read_tum, write_tum
 from satpose.tools.metrics import (
     RANGE_BANDS_M,
     SignedErrors,
+    SpecScore,
     band_label,
     band_mask,
     body_rotation_offset,
     pose_errors,
     relative_errors,
     signed_errors,
+    spec_score,
 )
 from satpose.tools.pipeline import read_estimate_npz, read_provenance
 
@@ -208,6 +213,7 @@ class TrajectoryMetrics:
     spin_err_deg_per_frame: float | None
     bias: Bias
     per_frame: pd.DataFrame
+    spec: SpecScore
 
 
 def evaluate_run(sequence_path: Path, run: Path) -> dict[str, TrajectoryMetrics]:
@@ -302,6 +308,7 @@ def evaluate_run(sequence_path: Path, run: Path) -> dict[str, TrajectoryMetrics]
             spin_err_deg_per_frame=spin_err,
             bias=Bias.of(signed),
             per_frame=per_frame,
+            spec=spec_score(est, gt, offset),
         )
     return results
 
@@ -322,9 +329,9 @@ def table(results: dict[str, TrajectoryMetrics]) -> str:
     head = (
         "| trajectory | frames | pos [cm] | rot [deg] | rot raw [deg] | inter-frame "
         "[cm / deg] | ATE [cm] | ATE -a [cm] | RPE [cm / deg] | NEES (in 95 %) "
-        "| spin err [deg/frame] |"
+        "| spin err [deg/frame] | SPEC score |"
     )
-    lines = [head, "|---" * 11 + "|"]
+    lines = [head, "|---" * 12 + "|"]
     for name, m in results.items():
         nees_txt = (
             "-"
@@ -337,7 +344,7 @@ def table(results: dict[str, TrajectoryMetrics]) -> str:
             f"| {name} | {m.frames}/{m.frames_in_sequence} | {m.pos_cm:.2f} | {m.rot_deg:.3f} | "
             f"{m.rot_raw_deg:.2f} | {m.rel_pos_cm:.2f} / {m.rel_rot_deg:.3f} | "
             f"{100 * m.ate_m:.2f} | {aligned} | {100 * m.rpe_trans_m:.2f} / {m.rpe_rot_deg:.3f} | "
-            f"{nees_txt} | {spin} |"
+            f"{nees_txt} | {spin} | {m.spec.score:.4f} |"
         )
     bands = [band_label(b) for b in RANGE_BANDS_M]
     lines += ["", "| trajectory | " + " | ".join(bands) + " |", "|---" * (len(bands) + 1) + "|"]

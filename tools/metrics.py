@@ -140,3 +140,51 @@ def band_mask(range_m: np.ndarray, band: tuple[float, float]) -> np.ndarray:
 def band_label(band: tuple[float, float]) -> str:
     hi, lo = band
     return f"{hi:g}-{lo:g} m" if lo > 0 else f"< {hi:g} m"
+
+
+SPEC_T_THRESHOLD = 2.173e-3
+"""ESA SPEC: relative translation errors below this (2.173 mm per metre) count as zero."""
+SPEC_Q_THRESHOLD_DEG = 0.169
+"""ESA SPEC: rotation errors below this count as zero [deg]."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class SpecScore:
+    """The ESA pose-estimation challenge's score (SPEC, Kisantal et al. 2020, with the
+    thresholds of its 2021 edition) over matched frames.
+
+    Per frame ``e_t = |t_est - t_true| / |t_true|`` (zero below `SPEC_T_THRESHOLD`) and
+    ``e_q = 2 acos |<q_est, q_true>|`` [rad] (the rotation angle between the two; zero below
+    `SPEC_Q_THRESHOLD_DEG`); the score is the mean of ``e_t + e_q``. Lower is better.
+
+    Attributes:
+        score: mean of ``e_t + e_q``.
+        translation: mean ``e_t``.
+        rotation: mean ``e_q`` [rad].
+    """
+
+    score: float
+    translation: float
+    rotation: float
+
+
+def spec_score(
+    est: Sequence[Rigid3], truth: Sequence[Rigid3], offset: np.ndarray | None = None
+) -> SpecScore:
+    """`SpecScore` of matched pose lists. ``offset``: the constant body-frame rotation applied
+    to the estimate first (`body_rotation_offset`; a non-cooperative estimate chooses its own
+    axes); None: none (a cooperative target's known frame)."""
+    R_off = np.eye(3) if offset is None else offset
+    e_t = np.array(
+        [np.linalg.norm(e.t - t.t) / np.linalg.norm(t.t) for e, t in zip(est, truth, strict=True)]
+    )
+    e_q = np.array(
+        [rotation_angle((e.R @ R_off).T @ t.R) for e, t in zip(est, truth, strict=True)]
+    )
+    e_t = np.where(e_t < SPEC_T_THRESHOLD, 0.0, e_t)
+    e_q = np.where(e_q < np.radians(SPEC_Q_THRESHOLD_DEG), 0.0, e_q)
+    return SpecScore(
+        score=float(np.mean(e_t + e_q)),
+        translation=float(np.mean(e_t)),
+        rotation=float(np.mean(e_q)),
+    )

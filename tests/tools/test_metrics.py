@@ -70,3 +70,35 @@ def test_zero_mean_noise_is_random_not_a_defect() -> None:
     b = Bias.of(signed_errors(est, truth))
     assert b.depth_sd_cm == pytest.approx(1.0, rel=0.15)
     assert b.defects() == []
+
+
+def test_spec_score_against_constructed_errors() -> None:
+    """ESA SPEC: e_t = |dt| / |t| and e_q = rotation angle [rad], each zeroed below its
+    threshold (2.173 mm/m, 0.169 deg), score = mean(e_t + e_q); the body-frame offset is
+    removed first when given."""
+    from satpose.tools.metrics import spec_score
+
+    rng = np.random.default_rng(3)
+    truth = _truth(rng, 4)
+    big = []
+    for T in truth:  # 1 % of the range along x, 1 deg about z
+        d = np.array([0.01 * np.linalg.norm(T.t), 0.0, 0.0])
+        big.append(Rigid3(R=T.R @ rotvec_to_matrix(np.radians([0.0, 0.0, 1.0])), t=T.t + d))
+    s = spec_score(big, truth)
+    assert s.translation == pytest.approx(0.01, rel=1e-12)
+    assert s.rotation == pytest.approx(np.radians(1.0), rel=1e-9)
+    assert s.score == pytest.approx(0.01 + np.radians(1.0), rel=1e-9)
+    # below both thresholds: zero
+    small = [
+        Rigid3(
+            R=T.R @ rotvec_to_matrix(np.radians([0.1, 0.0, 0.0])),
+            t=T.t + np.array([0.002 * np.linalg.norm(T.t), 0.0, 0.0]),
+        )
+        for T in truth
+    ]
+    assert spec_score(small, truth).score == 0.0
+    # a constant body-frame rotation of the estimate is removed by the offset
+    off = rotvec_to_matrix(np.array([0.0, 0.3, 0.0]))
+    turned = [Rigid3(R=T.R @ off.T, t=T.t) for T in truth]
+    assert spec_score(turned, truth).rotation > 0.29
+    assert spec_score(turned, truth, off).score == pytest.approx(0.0, abs=1e-12)
