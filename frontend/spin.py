@@ -843,6 +843,47 @@ def _projection_jacobian(params: np.ndarray, tau: np.ndarray) -> np.ndarray:
     return np.column_stack([np.ones_like(tau), s * co / d, tau * dx, dx])
 
 
+def _fit_angles(
+    model: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    jacobian: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    p: np.ndarray,
+    free: np.ndarray,
+    tau: np.ndarray,
+    th: np.ndarray,
+    iterations: int,
+) -> tuple[np.ndarray, float]:
+    """Levenberg-Marquardt of ``model(p, tau)`` on the angle residuals ``th`` (period pi)
+    over the parameters ``free`` (``jacobian`` gives their columns; ``p[1]``, the projection's
+    ``c``, kept in [-1, 1]). Converged when omega (``p[2]``) stops moving (1e-9 rad/s, far
+    below any sigma) and the cost stops falling. Returns the parameters and the cost."""
+
+    def cost_of(q: np.ndarray) -> float:
+        return float(np.sum(_wrap_half(th - model(q, tau)) ** 2))
+
+    p = p.copy()
+    cost, lam = cost_of(p), 1e-3
+    for _ in range(iterations):
+        r = _wrap_half(th - model(p, tau))
+        J = jacobian(p, tau)
+        H, grad = J.T @ J, J.T @ r
+        improved = False
+        for _ in range(10):
+            dp = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), grad)
+            q = p.copy()
+            q[free] += dp
+            q[1] = float(np.clip(q[1], -1.0, 1.0))
+            new_cost = cost_of(q)
+            if new_cost <= cost:
+                improved = abs(dp[2]) > 1e-9 or cost - new_cost > 1e-9 * cost
+                p, cost = q, new_cost
+                lam = max(lam / 10.0, 1e-9)
+                break
+            lam *= 10.0
+        if not improved:
+            break
+    return p, cost
+
+
 def _projection_fit(tau: np.ndarray, th: np.ndarray, omega0: float) -> tuple[np.ndarray, float]:
     """Least squares of `_projection_angle` on the angle residuals (period pi), started from
     the best of a grid over ``(c, phi)`` at ``omega0`` (the spectral peak) with the optimal
@@ -856,28 +897,7 @@ def _projection_fit(tau: np.ndarray, th: np.ndarray, omega0: float) -> tuple[np.
     r = _wrap_half(th - g - psi[..., None])
     i, j = np.unravel_index(np.argmin(np.sum(r * r, axis=2)), psi.shape)
     p = np.array([psi[i, j], cs[i], omega0, phis[j]])
-    cost = float(np.sum(_wrap_half(th - _projection_angle(p, tau)) ** 2))
-    lam = 1e-3
-    for _ in range(50):
-        r1 = _wrap_half(th - _projection_angle(p, tau))
-        J = _projection_jacobian(p, tau)
-        H, grad = J.T @ J, J.T @ r1
-        improved = False
-        for _ in range(10):
-            dp = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), grad)
-            pn = p + dp
-            pn[1] = float(np.clip(pn[1], -1.0, 1.0))
-            new_cost = float(np.sum(_wrap_half(th - _projection_angle(pn, tau)) ** 2))
-            if new_cost <= cost:
-                # converged when omega stops moving (1e-9 rad/s, far below any sigma) and the
-                # cost stops falling
-                improved = abs(dp[2]) > 1e-9 or cost - new_cost > 1e-9 * cost
-                p, cost = pn, new_cost
-                lam = max(lam / 10.0, 1e-9)
-                break
-            lam *= 10.0
-        if not improved:
-            break
+    p, _ = _fit_angles(_projection_angle, _projection_jacobian, p, np.arange(4), tau, th, 50)
     J = _projection_jacobian(p, tau)
     cov = np.linalg.pinv(J.T @ J, rcond=1e-12)  # per unit angle variance
     return p, float(np.sqrt(max(cov[2, 2], 0.0)))
@@ -990,31 +1010,7 @@ def _full_turn_fit(
         p[7::3], p[8::3] = coef[0::2], coef[1::2]
     free = np.r_[0:4, np.flatnonzero(np.arange(p.size - 6) % 3 != 0) + 6]  # not base/sign/k
 
-    def cost_of(q: np.ndarray) -> float:
-        return float(np.sum(_wrap_half(th - _full_turn_angle(q, tau)) ** 2))
-
-    cost, lam = cost_of(p), 1e-3
-    for _ in range(60):
-        r = _wrap_half(th - _full_turn_angle(p, tau))
-        J = _full_turn_jacobian(p, tau)
-        Hm, grad = J.T @ J, J.T @ r
-        improved = False
-        for _ in range(10):
-            dp = np.linalg.solve(Hm + lam * np.diag(np.diag(Hm) + 1e-12), grad)
-            q = p.copy()
-            q[free] += dp
-            q[1] = float(np.clip(q[1], -1.0, 1.0))
-            new_cost = cost_of(q)
-            if new_cost <= cost:
-                # converged when omega stops moving and the cost stops falling (as
-                # `_projection_fit`)
-                improved = abs(dp[2]) > 1e-9 or cost - new_cost > 1e-9 * cost
-                p, cost = q, new_cost
-                lam = max(lam / 10.0, 1e-9)
-                break
-            lam *= 10.0
-        if not improved:
-            break
+    p, cost = _fit_angles(_full_turn_angle, _full_turn_jacobian, p, free, tau, th, 60)
     J = _full_turn_jacobian(p, tau)
     cov = np.linalg.pinv(J.T @ J, rcond=1e-12)  # per unit angle variance
     noise = math.sqrt(cost / max(th.size - J.shape[1], 1))
