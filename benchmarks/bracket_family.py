@@ -42,13 +42,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import write_page
 
-from satpose.datasets.bracket_family import (
-    TUNING_SEEDS,
-    VALIDATION_SEEDS,
-    measured_points_b,
-    render_bracket_sequence,
-)
+from satpose.datasets.bracket_family import measured_points_b, render_bracket_sequence
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix
+from satpose.datasets.seed_split import TUNING_SEEDS, VALIDATION_SEEDS
 from satpose.datasets.sequence import load_sequence
 from satpose.frontend.bracket import (
     BracketGeometry,

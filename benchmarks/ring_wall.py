@@ -32,9 +32,10 @@ import numpy as np
 from _common import machine_summary, write_page  # benchmarks/_common.py (scripts run from the root)
 
 from satpose.datasets.geometry import Rigid3
-from satpose.datasets.random_family import TUNING_SEEDS, VALIDATION_SEEDS, random_draw
+from satpose.datasets.random_family import random_draw
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import scaled
+from satpose.datasets.seed_split import TUNING_SEEDS, VALIDATION_SEEDS
 from satpose.datasets.sequence import load_sequence
 from satpose.frontend.conics import circle_to_conic, sampson_distance
 from satpose.frontend.measurements import FrameMeasurements

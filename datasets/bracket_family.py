@@ -18,8 +18,9 @@ coordinates, a Gaussian optics blur and shot + read noise, 8 bit. Why not Mitsub
 rendered satellite (`satpose.datasets.target`) has one bracket layout and no cell grid; the
 family needs free bracket shapes, and exact, cheap, seeded images.
 
-Seeds are split once: `TUNING_SEEDS` may be looked at while developing; `VALIDATION_SEEDS` are
-only scored, never looked at to change a parameter (docs/bracket.md, "Bracket family").
+Seeds are split once, as for every family (`satpose.datasets.seed_split`): `TUNING_SEEDS` may
+be looked at while developing; `VALIDATION_SEEDS` are only scored, never looked at to change a
+parameter (docs/bracket.md, "Bracket family").
 All ranges are module constants (``*_RANGE``).
 
 Frames: the *bracket frame* ``B`` has ``x`` along ``P1 -> P2``, ``y`` in the bracket plane
@@ -40,15 +41,12 @@ import numpy as np
 from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.errors import ConfigError
 from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
+from satpose.datasets.seed_split import seed_sets, split_of
 from satpose.datasets.sequence import Bracket, Calibration, SequenceWriter, TargetGeometry
 
 BRACKET_RANDOM_NAME = "bracket-random"
 """The name ``satpose render`` takes for this family (``--seed`` picks the member)."""
 
-TUNING_SEEDS = range(0, 100)
-"""Seeds that may be looked at (images, errors) while developing and tuning."""
-VALIDATION_SEEDS = range(1000, 1100)
-"""Seeds that are only scored: never looked at to change a parameter."""
 
 DEFAULT_FRAMES = 25
 RATE_HZ = 1.0
@@ -153,15 +151,6 @@ class BracketScene:
         if self.visible_fraction >= 1.0:
             return h + 3 * self.strut_radius_m + 0.02
         return self.visible_fraction * h
-
-
-def split_of(seed: int) -> str | None:
-    """``"tuning"``, ``"validation"`` or None (a seed outside both sets)."""
-    if seed in TUNING_SEEDS:
-        return "tuning"
-    if seed in VALIDATION_SEEDS:
-        return "validation"
-    return None
 
 
 def _u(rng: np.random.Generator, lo_hi: tuple[float, float]) -> float:
@@ -280,9 +269,7 @@ def bracket_draw(
     """
     if not any_seed and split_of(seed) is None:
         raise BracketFamilyError(
-            f"{BRACKET_RANDOM_NAME} seed {seed}: tuning seeds {TUNING_SEEDS.start}-"
-            f"{TUNING_SEEDS.stop - 1}, validation seeds {VALIDATION_SEEDS.start}-"
-            f"{VALIDATION_SEEDS.stop - 1}"
+            f"{BRACKET_RANDOM_NAME} seed {seed}: {seed_sets()}"
         )
     if frames < 2:
         raise BracketFamilyError(f"frames: at least 2, got {frames}")

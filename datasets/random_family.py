@@ -16,8 +16,9 @@ ring normal at most 75 deg from the line of sight, and the ring's front face lit
 generator, so the result is still a function of the seed. The exposure is then metered on
 the ring's front plane.
 
-The seeds are split once (docs/renderer.md, "Random family"): `TUNING_SEEDS` may be looked
-at while developing; `VALIDATION_SEEDS` are only scored, never looked at to change a
+The seeds are split once, for every family (`satpose.datasets.seed_split`; docs/renderer.md,
+"Random family"): `TUNING_SEEDS` may be looked at while developing; `VALIDATION_SEEDS` are only
+scored, never looked at to change a
 parameter.
 
 All ranges are module constants (``*_RANGE``), documented in docs/renderer.md.
@@ -43,6 +44,7 @@ from satpose.datasets.scenarios import (
     rim_in_view,
     trajectory,
 )
+from satpose.datasets.seed_split import seed_sets
 from satpose.datasets.target import (
     BusConfig,
     ComponentsConfig,
@@ -57,10 +59,6 @@ from satpose.datasets.target import (
 RANDOM_NAME = "random"
 """The name ``satpose render`` takes for this family (``--seed`` picks the member)."""
 
-TUNING_SEEDS = range(0, 100)
-"""Seeds that may be looked at (images, errors) while developing and tuning."""
-VALIDATION_SEEDS = range(1000, 1100)
-"""Seeds that are only scored: never looked at to change a parameter."""
 
 DEFAULT_FRAMES = 30
 RATE_HZ = 0.5
@@ -93,15 +91,6 @@ MOTION_KINDS: tuple[MotionKind, ...] = ("approach", "spin", "tumble")
 _MAX_ATTEMPTS = 200
 
 
-def split_of(seed: int) -> str | None:
-    """``"tuning"``, ``"validation"`` or None (a seed outside both sets)."""
-    if seed in TUNING_SEEDS:
-        return "tuning"
-    if seed in VALIDATION_SEEDS:
-        return "validation"
-    return None
-
-
 def named_scenario(name: str, seed: int | None) -> Scenario:
     """A preset by name, or the random family's member ``seed`` for ``name == "random"``.
 
@@ -111,8 +100,7 @@ def named_scenario(name: str, seed: int | None) -> Scenario:
     if name == RANDOM_NAME:
         if seed is None:
             raise ConfigError(
-                f"render {RANDOM_NAME} needs --seed N (tuning seeds {_span(TUNING_SEEDS)}, "
-                f"validation seeds {_span(VALIDATION_SEEDS)})"
+                f"render {RANDOM_NAME} needs --seed N ({seed_sets()})"
             )
         return random_scenario(seed)
     return preset(name)
@@ -121,10 +109,6 @@ def named_scenario(name: str, seed: int | None) -> Scenario:
 def scenario_names() -> list[str]:
     """Every name ``named_scenario`` accepts: the presets and ``random``."""
     return sorted([*PRESETS, RANDOM_NAME])
-
-
-def _span(r: range) -> str:
-    return f"{r.start}-{r.stop - 1}"
 
 
 # --------------------------------------------------------------------------------------------

@@ -463,18 +463,14 @@ def render_family_member(args: argparse.Namespace) -> None:
         BRACKET_RANDOM_NAME,
         DEFAULT_FRAMES,
         DEFAULT_SIZE,
-        TUNING_SEEDS,
-        VALIDATION_SEEDS,
         BracketFamilyError,
         render_bracket_sequence,
-        split_of,
     )
+    from satpose.datasets.seed_split import seed_sets, split_of
 
     if args.seed is None:
         raise BracketFamilyError(
-            f"render {BRACKET_RANDOM_NAME} needs --seed N (tuning seeds {TUNING_SEEDS.start}-"
-            f"{TUNING_SEEDS.stop - 1}, validation seeds {VALIDATION_SEEDS.start}-"
-            f"{VALIDATION_SEEDS.stop - 1})"
+            f"render {BRACKET_RANDOM_NAME} needs --seed N ({seed_sets()})"
         )
     for flag in ("spp", "config"):
         if getattr(args, flag, None) is not None:

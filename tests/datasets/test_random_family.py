@@ -19,11 +19,12 @@ from satpose.datasets import random_family as rf
 from satpose.datasets.config import from_plain, to_plain
 from satpose.datasets.errors import ConfigError
 from satpose.datasets.scenarios import PRESETS, Scenario, preset, rim_in_view, scaled
+from satpose.datasets.seed_split import TUNING_SEEDS, VALIDATION_SEEDS, split_of
 from satpose.datasets.sequence import load_sequence
 from satpose.datasets.target import RingConfig, TargetConfig, geometry
 from satpose.tools.cli import main
 
-SEEDS = [*rf.TUNING_SEEDS, *rf.VALIDATION_SEEDS]
+SEEDS = [*TUNING_SEEDS, *VALIDATION_SEEDS]
 
 
 @pytest.fixture(scope="module")
@@ -42,11 +43,11 @@ def test_the_same_seed_draws_the_same_scenario() -> None:
 
 
 def test_the_split_is_fixed_and_disjoint() -> None:
-    tuning, validation = set(rf.TUNING_SEEDS), set(rf.VALIDATION_SEEDS)
+    tuning, validation = set(TUNING_SEEDS), set(VALIDATION_SEEDS)
     assert len(tuning) == len(validation) == 100
     assert not tuning & validation
-    assert rf.split_of(5) == "tuning" and rf.split_of(1005) == "validation"
-    assert rf.split_of(500) is None
+    assert split_of(5) == "tuning" and split_of(1005) == "validation"
+    assert split_of(500) is None
 
 
 def test_ring_geometry_within_the_ranges(draws: dict[int, rf.RandomDraw]) -> None:
@@ -240,7 +241,7 @@ def test_a_lipped_ring_front_matches_target_yaml() -> None:
     from satpose.datasets.render_check import geometry_errors
     from satpose.datasets.scenarios import trajectory
 
-    seed = next(s for s in rf.TUNING_SEEDS if rf.random_draw(s).rim == "lip")
+    seed = next(s for s in TUNING_SEEDS if rf.random_draw(s).rim == "lip")
     s = scaled(rf.random_scenario(seed), frames=1, size=(320, 256))
     pose = trajectory(s).left_cam_from_target[0]
     for cam, parts in geometry_errors(s, pose, spp=256).items():

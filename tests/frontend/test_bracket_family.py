@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from satpose.datasets import bracket_family as bf
+from satpose.datasets.seed_split import split_of
 from satpose.frontend.bracket import triangle_sides
 
 
@@ -41,8 +42,8 @@ def test_draw_respects_its_ranges(seed: int) -> None:
 
 
 def test_seed_split_and_bad_seed() -> None:
-    assert bf.split_of(0) == "tuning" and bf.split_of(1099) == "validation"
-    assert bf.split_of(500) is None
+    assert split_of(0) == "tuning" and split_of(1099) == "validation"
+    assert split_of(500) is None
     with pytest.raises(bf.BracketFamilyError, match="seed 500"):
         bf.bracket_draw(500)
 
