@@ -268,9 +268,7 @@ def bracket_draw(
         BracketFamilyError: ``seed`` is in neither set (unless ``any_seed``), or bad sizes.
     """
     if not any_seed and split_of(seed) is None:
-        raise BracketFamilyError(
-            f"{BRACKET_RANDOM_NAME} seed {seed}: {seed_sets()}"
-        )
+        raise BracketFamilyError(f"{BRACKET_RANDOM_NAME} seed {seed}: {seed_sets()}")
     if frames < 2:
         raise BracketFamilyError(f"frames: at least 2, got {frames}")
     rng = np.random.default_rng(seed)

@@ -99,9 +99,7 @@ def named_scenario(name: str, seed: int | None) -> Scenario:
     """
     if name == RANDOM_NAME:
         if seed is None:
-            raise ConfigError(
-                f"render {RANDOM_NAME} needs --seed N ({seed_sets()})"
-            )
+            raise ConfigError(f"render {RANDOM_NAME} needs --seed N ({seed_sets()})")
         return random_scenario(seed)
     return preset(name)
 

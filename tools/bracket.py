@@ -469,9 +469,7 @@ def render_family_member(args: argparse.Namespace) -> None:
     from satpose.datasets.seed_split import seed_sets, split_of
 
     if args.seed is None:
-        raise BracketFamilyError(
-            f"render {BRACKET_RANDOM_NAME} needs --seed N ({seed_sets()})"
-        )
+        raise BracketFamilyError(f"render {BRACKET_RANDOM_NAME} needs --seed N ({seed_sets()})")
     for flag in ("spp", "config"):
         if getattr(args, flag, None) is not None:
             raise BracketFamilyError(
