@@ -178,9 +178,7 @@ def spec_score(
     e_t = np.array(
         [np.linalg.norm(e.t - t.t) / np.linalg.norm(t.t) for e, t in zip(est, truth, strict=True)]
     )
-    e_q = np.array(
-        [rotation_angle((e.R @ R_off).T @ t.R) for e, t in zip(est, truth, strict=True)]
-    )
+    e_q = np.array([rotation_angle((e.R @ R_off).T @ t.R) for e, t in zip(est, truth, strict=True)])
     e_t = np.where(e_t < SPEC_T_THRESHOLD, 0.0, e_t)
     e_q = np.where(e_q < np.radians(SPEC_Q_THRESHOLD_DEG), 0.0, e_q)
     return SpecScore(

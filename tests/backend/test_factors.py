@@ -153,9 +153,7 @@ def test_ring_factors_with_the_disparity_bias(jacobians) -> None:  # type: ignor
     # measured rather than the true centre)
     residual = np.abs(f.unwhitenedError(values(T_TRUE, beta))[:3]).max()
     assert residual < 2.5 * shift**2 / float(np.linalg.norm(c)) < 0.02 * shift
-    for f, v, shape in (
-        (biased, values(T_TRUE @ OFF, 0.3), (5, 7)),
-    ):
+    for f, v, shape in ((biased, values(T_TRUE @ OFF, 0.3), (5, 7)),):
         J, Jn = analytic(f, v), numerical(f, v)
         assert J.shape == shape
         assert np.abs(J - Jn).max() < 1e-8 * max(1.0, np.abs(Jn).max())
