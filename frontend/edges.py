@@ -170,6 +170,29 @@ def edges_along_normals(
     return out, np.where(ok, contrast, 0.0)
 
 
+def edges_of_polarity(
+    image_s: np.ndarray,
+    points: np.ndarray,
+    normals: np.ndarray,
+    polarity: int,
+    half_width_px: float,
+    config: EdgeSearchConfig,
+    raw: np.ndarray | None = None,
+) -> np.ndarray:
+    """`edges_along_normals`' edge points (NaN where none), with ``polarity`` 0 too: an edge
+    brighter on one side of a curve and darker on the other (side light: lit foil beside a
+    rim, shadow on the far side), each normal keeping the stronger of both signs."""
+    if polarity != 0:
+        return edges_along_normals(
+            image_s, points, normals, polarity, half_width_px, config, raw=raw
+        )[0]
+    brighter, c_b = edges_along_normals(
+        image_s, points, normals, +1, half_width_px, config, raw=raw
+    )
+    darker, c_d = edges_along_normals(image_s, points, normals, -1, half_width_px, config, raw=raw)
+    return np.where((c_d > c_b)[:, None], darker, brighter)
+
+
 def _midlevel(
     prof: np.ndarray, s: np.ndarray, coarse: np.ndarray, config: EdgeSearchConfig
 ) -> tuple[np.ndarray, np.ndarray]:

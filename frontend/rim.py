@@ -34,7 +34,7 @@ import numpy as np
 
 from satpose.datasets.geometry import Rigid3
 from satpose.frontend.conics import ConicError, Ellipse, conic_to_ellipse, sampson_distance
-from satpose.frontend.edges import EdgeSearchConfig, edges_along_normals
+from satpose.frontend.edges import EdgeSearchConfig, edges_of_polarity
 from satpose.frontend.measurements import Camera, EllipseObservation
 from satpose.frontend.stereo import (
     Circle3D,
@@ -154,24 +154,6 @@ def _outward_normals(conic: np.ndarray, pts: np.ndarray, center: np.ndarray) -> 
     return nrm
 
 
-def edges_at(
-    image_s: np.ndarray,
-    raw: np.ndarray,
-    pts: np.ndarray,
-    nrm: np.ndarray,
-    polarity: int,
-    half: float,
-    config: EdgeSearchConfig,
-) -> np.ndarray:
-    """Sub-pixel edges along the given outward normals (NaN where none). ``polarity`` +1:
-    brighter inside, -1: darker, 0: the stronger of both on each normal."""
-    if polarity != 0:
-        return edges_along_normals(image_s, pts, nrm, polarity, half, config, raw=raw)[0]
-    brighter, c_b = edges_along_normals(image_s, pts, nrm, +1, half, config, raw=raw)
-    darker, c_d = edges_along_normals(image_s, pts, nrm, -1, half, config, raw=raw)
-    return np.where((c_d > c_b)[:, None], darker, brighter)
-
-
 @dataclass(frozen=True)
 class RimImage:
     """What `fit_outer_rim` needs of one camera's image."""
@@ -214,7 +196,7 @@ def fit_outer_rim(
             conic = circle_conic(K, T, circle.center, circle.normal, circle.radius)
             center = _project(K, T, circle.center[None])[0]
             nrm = _outward_normals(conic, pts, center)
-            e = edges_at(img.image_s, img.raw, pts, nrm, img.polarity, half, edges)
+            e = edges_of_polarity(img.image_s, pts, nrm, img.polarity, half, edges, raw=img.raw)
             e = e[np.isfinite(e[:, 0])]
             if e.shape[0] < config.min_rim_fraction * config.samples:
                 raise GeometryFailure(

@@ -38,7 +38,7 @@ from satpose.frontend.conics import (
 )
 from satpose.frontend.edges import (
     EdgeSearchConfig,
-    edges_along_normals,
+    edges_of_polarity,
     sample_image,
     smoothed,
 )
@@ -390,7 +390,9 @@ class RingTracker:
         keep = np.zeros(0, bool)
         P = np.zeros((0, 2))
         for _ in range(2):
-            pts = _edges(image_s, raw, e, n, polarity, half, cfg.edges)
+            pts = edges_of_polarity(
+                image_s, e.points(n), e.normals(n), polarity, half, cfg.edges, raw=raw
+            )
             P = pts[np.isfinite(pts[:, 0])]
             if P.shape[0] < cfg.min_edge_fraction * n:
                 return None
@@ -413,26 +415,6 @@ class RingTracker:
         if rms > cfg.max_refine_rms_px or e.b < cfg.min_axis_px:
             return None
         return e, cov, rms, P[keep]
-
-
-def _edges(
-    image_s: np.ndarray,
-    raw: np.ndarray,
-    e: Ellipse,
-    n: int,
-    polarity: int,
-    half: float,
-    config: EdgeSearchConfig,
-) -> np.ndarray:
-    """Sub-pixel edges along ``n`` normals of ``e`` (NaN where none). ``polarity`` 0: a rim
-    brighter than its surroundings on one side and darker on the other (side light: lit foil
-    beside the rim, shadow on the far side); each normal keeps the stronger of both signs."""
-    pts, nrm = e.points(n), e.normals(n)
-    if polarity != 0:
-        return edges_along_normals(image_s, pts, nrm, polarity, half, config, raw=raw)[0]
-    brighter, c_b = edges_along_normals(image_s, pts, nrm, +1, half, config, raw=raw)
-    darker, c_d = edges_along_normals(image_s, pts, nrm, -1, half, config, raw=raw)
-    return np.where((c_d > c_b)[:, None], darker, brighter)
 
 
 def _grown_concentric(e: Ellipse, e0: Ellipse, min_growth: float = 1.03) -> bool:

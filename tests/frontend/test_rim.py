@@ -13,11 +13,10 @@ import numpy as np
 import pytest
 
 from satpose.datasets.geometry import Rigid3
-from satpose.frontend.edges import EdgeSearchConfig, smoothed
+from satpose.frontend.edges import EdgeSearchConfig, edges_of_polarity, smoothed
 from satpose.frontend.rim import (
     RimFitConfig,
     RimImage,
-    edges_at,
     fit_outer_rim,
     rim_labels,
     rim_samples,
@@ -128,7 +127,7 @@ def test_rim_only_fit_ignores_the_wall(tilt_deg: float) -> None:
         g = np.c_[p, np.ones(len(p))] @ c
         nrm = g[:, :2] / np.linalg.norm(g[:, :2], axis=1, keepdims=True)
         nrm *= np.sign(np.einsum("ij,ij->i", nrm, p - _project(T, start.center[None])))[:, None]
-        e = edges_at(img.image_s, img.raw, p, nrm, +1, 3.0, EDGES)
+        e = edges_of_polarity(img.image_s, p, nrm, +1, 3.0, EDGES, raw=img.raw)
         pts.append(e[np.isfinite(e[:, 0])])
     everything = refine_circle(RIG, start.center, start.normal, start.radius, pts[0], pts[1])
     err_rim = float(np.linalg.norm(fit.circle.center - rim.center))
