@@ -65,15 +65,14 @@ def edge_sides(m: FrameMeasurements, truth: Rigid3, radius: float, rig: StereoRi
     normal = truth.R[:, 2] if truth.R[:, 2] @ truth.t < 0 else -truth.R[:, 2]
     circle = Circle3D(center=truth.t, normal=normal, radius=radius, covariance=np.eye(7))
     P, hidden_l, hidden_r = rim_labels(circle, rig, 720, 0.0)
+    proj_l, proj_r = rig.project(P)
     out = {}
-    for e, K, T, hidden in (
-        (m.ring.ellipses[0], rig.K_left, Rigid3.identity(), hidden_l),
-        (m.ring.ellipses[1], rig.K_right, rig.right_from_left, hidden_r),
+    for e, K, T, hidden, proj in (
+        (m.ring.ellipses[0], rig.K_left, Rigid3.identity(), hidden_l, proj_l),
+        (m.ring.ellipses[1], rig.K_right, rig.right_from_left, hidden_r, proj_r),
     ):
         pts = e.edge_points_px
         d = sampson_distance(pts, circle_to_conic(K, T @ truth, radius))
-        x = (P @ T.R.T + T.t) @ K.T
-        proj = x[:, :2] / x[:, 2:3]
         nearest = np.argmin(((pts[:, None, :] - proj[None]) ** 2).sum(-1), axis=1)
         side = hidden[nearest]
         cam = e.camera.value

@@ -139,12 +139,6 @@ def rim_labels(
     return P, wall_facing(P, rho, c_left) < s, wall_facing(P, rho, c_right) < s
 
 
-def _project(K: np.ndarray, cam_from_left: Rigid3, X: np.ndarray) -> np.ndarray:
-    Xc = X @ cam_from_left.R.T + cam_from_left.t
-    x = Xc @ K.T
-    return x[:, :2] / x[:, 2:3]
-
-
 def _outward_normals(conic: np.ndarray, pts: np.ndarray, center: np.ndarray) -> np.ndarray:
     """Unit normals of the conic at points on it, pointing away from ``center``."""
     g = np.c_[pts, np.ones(len(pts))] @ conic
@@ -191,11 +185,13 @@ def fit_outer_rim(
         P, m_left, m_right = rim_labels(circle, rig, config.samples, config.wall_margin_deg)
         fractions = (float(m_left.mean()), float(m_right.mean()))
         found = []
-        for (K, T), img, mask in zip(cams, images, (m_left, m_right), strict=True):
-            pts = _project(K, T, P[mask])
+        projected = zip(rig.project(P), rig.project(circle.center[None]), strict=True)
+        for (K, T), img, mask, (px, center) in zip(
+            cams, images, (m_left, m_right), projected, strict=True
+        ):
+            pts = px[mask]
             conic = circle_conic(K, T, circle.center, circle.normal, circle.radius)
-            center = _project(K, T, circle.center[None])[0]
-            nrm = _outward_normals(conic, pts, center)
+            nrm = _outward_normals(conic, pts, center[0])
             e = edges_of_polarity(img.image_s, pts, nrm, img.polarity, half, edges, raw=img.raw)
             e = e[np.isfinite(e[:, 0])]
             if e.shape[0] < config.min_rim_fraction * config.samples:
