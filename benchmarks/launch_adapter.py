@@ -26,7 +26,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from _common import machine_summary, write_page  # benchmarks/_common.py (scripts run from the root)
 
 from satpose.backend import BackendConfig
@@ -151,5 +150,4 @@ def markdown(rows: list[tuple[str, str, Any]], args: argparse.Namespace, seconds
 
 
 if __name__ == "__main__":
-    np.set_printoptions(precision=3)
     main()
