@@ -23,6 +23,7 @@ import yaml
 from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.config import to_plain
 from satpose.datasets.errors import SatposeError, SequenceError
+from satpose.datasets.events import Events
 from satpose.datasets.geometry import matrix_to_quat_xyzw, matrix_to_rotvec
 from satpose.datasets.sequence import Frame, load_calibration, load_sequence
 from satpose.frontend.stars import (
@@ -56,6 +57,7 @@ class TrackResult:
     bad_frames: BadFrames = field(default_factory=BadFrames)  # frames pipeline only
     config: StarTrackerConfig | None = None  # the frontend's, calib.yaml's event_sensor applied
     measured: dict[str, Any] = field(default_factory=dict)  # what the tracker measured
+    events: Events | None = None  # the stream the events pipeline tracked
 
 
 def open_star_sequence(
@@ -221,6 +223,7 @@ def track_sequence(
     if "psf_sigma_px" in stated:  # stated: not measured
         config = replace(config, psf_outputs=0)
     tracker = StarTracker(cam, config)
+    ev: Events | None = None
     if pipeline == "events":
         events_file = find_events_file(seq_dir)
         if events_file is None:
@@ -311,7 +314,15 @@ def track_sequence(
             measured["hot_pixel_events"] = int(st.hot_events)
             measured["events_kept_by_noise_filter"] = round(float(st.kept_fraction), 4)
     return TrackResult(
-        sols, np.array([s.t_s for s in sols]), R, cov, estimator, bad, config, measured
+        sols,
+        np.array([s.t_s for s in sols]),
+        R,
+        cov,
+        estimator,
+        bad,
+        config,
+        measured,
+        ev,
     )
 
 
@@ -416,10 +427,12 @@ def write_recording(
         lo, hi = np.percentile(img, [1.0, 99.9])
         img8 = (np.clip((img - lo) / max(hi - lo, 1.0), 0, 1) * 255).astype(np.uint8)
         rec.log(SKY, rr.Image(img8, color_model="L"))
-    events_file = find_events_file(seq_dir)
-    if events_file is None:
-        raise SequenceError(Path(seq_dir) / EVENTS_FILE, None, "required file is missing")
-    ev = read_events(events_file)
+    ev = res.events
+    if ev is None:  # the frames pipeline tracked: the recording's events, if any
+        events_file = find_events_file(seq_dir)
+        if events_file is None:
+            raise SequenceError(Path(seq_dir) / EVENTS_FILE, None, "required file is missing")
+        ev = read_events(events_file)
     truth_path = seq_dir / ATTITUDE_TRUTH_FILE
     truth = load_attitude_truth(truth_path) if truth_path.is_file() else None
     ok = np.isfinite(res.R[:, 0, 0])
