@@ -433,6 +433,20 @@ def load_calibration(path: str | Path, kind: str = "mono") -> Calibration:
     return _read_calibration(Path(path), kind)
 
 
+def load_target(path: str | Path) -> TargetGeometry:
+    """target.yaml on its own (a user's target geometry before it joins a sequence).
+
+    Raises:
+        SequenceError: naming the file and field (also when the file is missing).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise SequenceError(p, None, "target file does not exist")
+    target = _read_target(p)
+    assert target is not None
+    return target
+
+
 def _read_calibration(path: Path, kind: str) -> Calibration:
     data = _read_yaml(path, required=True)
     cams = data.get("cameras")
@@ -1032,7 +1046,9 @@ __all__ = [
     "SequenceWriter",
     "TargetGeometry",
     "check_png_header",
+    "load_calibration",
     "load_sequence",
+    "load_target",
     "read_image",
     "write_sequence",
 ]
