@@ -17,7 +17,9 @@ import os
 import shutil
 import struct
 import uuid
+from collections import deque
 from collections.abc import Iterator, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -769,6 +771,10 @@ class SequenceWriter:
         calibration: written to calib.yaml; images are checked against it.
         target: written to target.yaml if given.
         overwrite: replace an existing folder (only after the new one is complete).
+        png_compression: zlib level 0-9 of the PNGs (None: OpenCV's default, 1); any level is
+            lossless, higher is smaller and slower (docs/results/import.md).
+        workers: PNGs encoded and written by this many threads (OpenCV releases the GIL);
+            `close` waits for them and raises the first failure.
     """
 
     def __init__(
@@ -782,8 +788,20 @@ class SequenceWriter:
         generator: Mapping[str, Any] | None = None,
         target: TargetGeometry | None = None,
         overwrite: bool = False,
+        png_compression: int | None = None,
+        workers: int = 1,
     ) -> None:
         self.path = Path(path)
+        if png_compression is not None and not 0 <= png_compression <= 9:
+            raise SatposeError(f"PNG compression must be 0-9, got {png_compression}")
+        if workers < 1:
+            raise SatposeError(f"workers must be >= 1, got {workers}")
+        self._png_params = (
+            [] if png_compression is None else [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
+        )
+        self._pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
+        self._pending: deque[Future[None]] = deque()
+        self._max_pending = 4 * workers
         if kind not in ("stereo", "mono"):
             raise SequenceError(
                 self.path / "sequence.yaml", "kind", f"must be stereo or mono, got {kind!r}"
@@ -836,7 +854,16 @@ class SequenceWriter:
     def abort(self) -> None:
         """Discard everything written so far."""
         self._closed = True
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pending.clear()
         shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def _drain(self, keep: int) -> None:
+        """Wait for queued PNG writes until at most ``keep`` are pending (re-raising the
+        first failure)."""
+        while len(self._pending) > keep:
+            self._pending.popleft().result()
 
     def add_frame(
         self,
@@ -928,14 +955,20 @@ class SequenceWriter:
             )
         _check_size(path, a.shape[1], a.shape[0], camera)
         path.parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(str(path), a):
-            raise SequenceError(path, None, "could not write PNG")
+        if self._pool is None:
+            _imwrite(path, a, self._png_params)
+            return
+        self._drain(self._max_pending - 1)
+        self._pending.append(self._pool.submit(_imwrite, path, a, self._png_params))
 
     def close(self) -> Path:
         """Write the small files and move the folder into place. Returns the final path."""
         if self._closed:
             return self.path
         try:
+            self._drain(0)
+            if self._pool is not None:
+                self._pool.shutdown(wait=True)
             if not self._frames:
                 raise SequenceError(
                     self.path / "frames.csv", None, "a sequence needs at least one frame"
@@ -965,6 +998,11 @@ class SequenceWriter:
             raise
         self._closed = True
         return self.path
+
+
+def _imwrite(path: Path, img: np.ndarray, params: list[int]) -> None:
+    if not cv2.imwrite(str(path), img, params):
+        raise SequenceError(path, None, "could not write PNG")
 
 
 def atomic_write(path: str | Path, write: Any) -> Path:

@@ -143,6 +143,8 @@ def _handler(args: argparse.Namespace) -> None:
         name=args.name,
         target=args.target,
         overwrite=args.overwrite,
+        png_compression=args.png_compression,
+        workers=args.workers,
     )
     truth = None
     if args.truth is not None:
@@ -272,6 +274,18 @@ def register(subparsers: Any) -> None:
         help="do not interpolate across truth samples further apart than this",
     )
     r.add_argument("--target", type=Path, metavar="FILE", help="target.yaml to copy in")
+    o = p.add_argument_group("output")
+    o.add_argument(
+        "--png-compression",
+        type=int,
+        choices=range(10),
+        metavar="0-9",
+        help="zlib level of the PNGs (default OpenCV's 1; 0 is fastest and largest; "
+        "docs/results/import.md)",
+    )
+    o.add_argument(
+        "--workers", type=positive_int, default=1, help="threads writing PNGs (default 1)"
+    )
     p.add_argument("--name", help="sequence name (default: the source's name)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.set_defaults(handler=_handler)

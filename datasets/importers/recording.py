@@ -62,6 +62,8 @@ class ImportOptions:
         name: sequence.yaml's name (default: the source's name).
         target: a target.yaml to copy in (validated).
         overwrite: replace an existing output folder.
+        png_compression: zlib level 0-9 of the written PNGs (None: OpenCV's default).
+        workers: threads encoding PNGs (`SequenceWriter`).
     """
 
     left: str | None = None
@@ -78,6 +80,8 @@ class ImportOptions:
     name: str | None = None
     target: Path | None = None
     overwrite: bool = False
+    png_compression: int | None = None
+    workers: int = 1
 
     def __post_init__(self) -> None:
         if not self.pair_tolerance_s >= 0:
@@ -334,6 +338,8 @@ def _write(
         calibration=calibration,
         target=target,
         overwrite=opts.overwrite,
+        png_compression=opts.png_compression,
+        workers=opts.workers,
     )
     times: list[float] = []
     no_truth: list[float] = []

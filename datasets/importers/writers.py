@@ -58,15 +58,19 @@ class BagWriter:
     Use as a context manager; the bag appears at ``path`` only when the block ends cleanly.
 
     Args:
-        path: ``*.bag`` for ROS 1, a folder name for ROS 2 (sqlite3 storage).
+        path: ``*.bag`` for ROS 1, a folder name for ROS 2.
         ros: 1 or 2.
+        storage: ROS 2's storage plugin, ``sqlite3`` (``.db3``) or ``mcap``.
     """
 
-    def __init__(self, path: Path, ros: Literal[1, 2]) -> None:
+    def __init__(
+        self, path: Path, ros: Literal[1, 2], storage: Literal["sqlite3", "mcap"] = "sqlite3"
+    ) -> None:
         from rosbags.typesys import Stores, get_typestore
 
         self.path = Path(path)
         self.ros = ros
+        self.storage = storage
         self.typestore = get_typestore(Stores.ROS1_NOETIC if ros == 1 else Stores.ROS2_HUMBLE)
         self._stage_cm = _staged_path(self.path)
         self._writer: Any = None
@@ -76,8 +80,14 @@ class BagWriter:
         from rosbags.rosbag1 import Writer as Writer1
         from rosbags.rosbag2 import Writer as Writer2
 
+        from rosbags.rosbag2 import StoragePlugin
+
         target = self._stage_cm.__enter__()
-        self._writer = Writer1(target) if self.ros == 1 else Writer2(target, version=9)
+        if self.ros == 1:
+            self._writer = Writer1(target)
+        else:
+            plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
+            self._writer = Writer2(target, version=9, storage_plugin=plugin)
         self._writer.open()
         return self
 
@@ -207,6 +217,7 @@ def write_bag(
     ros: Literal[1, 2],
     topics: tuple[str, str] = ("/cam0/image_raw", "/cam1/image_raw"),
     camera_info: bool = True,
+    storage: Literal["sqlite3", "mcap"] = "sqlite3",
 ) -> Path:
     """Write ``sequence`` as a bag: per frame one Image per camera stamped ``round(t_s * 1e9)``
     ns (and, with ``camera_info``, one CameraInfo per camera on ``<ns>/camera_info``)."""
@@ -216,7 +227,7 @@ def write_bag(
     if stereo and calib.right is not None and calib.right_from_left is not None:
         R1, R2, P1, P2 = rectification(calib.left, calib.right, calib.right_from_left)
         infos = [(R1, P1), (R2, P2)]
-    with BagWriter(path, ros) as bag:
+    with BagWriter(path, ros, storage) as bag:
         for fr in sequence:
             ns = round(fr.t_s * 1e9)
             cams: list[Literal["left", "right"]] = ["left", "right"] if stereo else ["left"]

@@ -76,11 +76,12 @@ def synthetic(synthetic_sequence: Path) -> Sequence:
 # ------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("ros", [1, 2])
+@pytest.mark.parametrize(("ros", "storage"), [(1, "sqlite3"), (2, "sqlite3"), (2, "mcap")])
 def test_bag_round_trip_with_truth_and_target(
-    synthetic: Sequence, tmp_path: Path, ros: int
+    synthetic: Sequence, tmp_path: Path, ros: int, storage: str
 ) -> None:
-    bag = write_bag(synthetic, tmp_path / ("rec.bag" if ros == 1 else "rec"), ros=ros)  # type: ignore[arg-type]
+    name = "rec.bag" if ros == 1 else "rec"
+    bag = write_bag(synthetic, tmp_path / name, ros=ros, storage=storage)  # type: ignore[arg-type]
     assert synthetic.truth is not None
     tum = tmp_path / "truth.tum"
     tum.write_text(
