@@ -31,7 +31,7 @@ from satpose.datasets.importers import (
 )
 from satpose.datasets.importers.common import DEFAULT_MAX_UNPAIRED, DEFAULT_TOLERANCE_S
 from satpose.tools.argtypes import positive_int
-from satpose.tools.files import ResultFileError, read_tum
+from satpose.tools.files import ResultFileError, check_out, read_tum
 
 _TIME_S = ("t_s", "t", "time", "timestamp", "#t_s", "# t_s", "#t", "# t")
 _TIME_NS = ("t_ns", "#timestamp [ns]", "timestamp [ns]", "#timestamp", "timestamp_ns")
@@ -155,6 +155,8 @@ def _handler(args: argparse.Namespace) -> None:
             time_offset_s=args.truth_time_offset,
             max_gap_s=args.truth_max_gap,
         )
+    # Replace only a sequence folder (or an empty one), never someone's other files.
+    check_out(args.out, args.overwrite, marker="sequence.yaml", what="a sequence")
     start = time.perf_counter()
     with tqdm(desc="import", unit="frame", file=sys.stderr, dynamic_ncols=True, delay=0.5) as bar:
         report = import_recording(

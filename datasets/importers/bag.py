@@ -184,17 +184,31 @@ class BagSource(FrameSource):
         try:
             self._reader: AnyReader | None = AnyReader([self.path], default_typestore=store)
             self._reader.open()
-            topics = {name: info.msgtype for name, info in self._reader.topics.items()}
-            counts = {name: info.msgcount for name, info in self._reader.topics.items()}
+            topics = {name: str(info.msgtype) for name, info in self._reader.topics.items()}
+            counts = {name: int(info.msgcount) for name, info in self._reader.topics.items()}
         except Exception as exc:  # rosbags raises many types for corrupt or truncated bags
             raise RecordingError(
                 self.path, "contents", f"not a readable ROS bag ({_why(exc)})"
             ) from None
+        try:
+            self._setup(topics, counts, left, right, mono, prefer_topics)
+        except BaseException:
+            self.close()
+            raise
+
+    def _setup(
+        self,
+        topics: dict[str, str],
+        counts: dict[str, int],
+        left: str | None,
+        right: str | None,
+        mono: bool,
+        prefer_topics: tuple[str, ...],
+    ) -> None:
         images = sorted(t for t, typ in topics.items() if typ in IMAGE_TYPES)
         self.all_image_topics = images
         if not images:
             listed = ", ".join(f"{t} ({typ})" for t, typ in sorted(topics.items())) or "none"
-            self.close()
             raise RecordingError(
                 self.path,
                 "topics",

@@ -196,6 +196,9 @@ class FrameSource(abc.ABC):
         """One line per fact the import reports (after `frames` is exhausted)."""
         return []
 
+    def close(self) -> None:  # noqa: B027 (optional hook: most sources hold nothing open)
+        """Release what the source holds open (also when `frames` was never started)."""
+
     def check(self) -> None:  # noqa: B027 (optional hook: most sources have nothing to check)
         """Raise `RecordingError` if what `frames` saw makes the recording unusable."""
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import chain
 from pathlib import Path
 from typing import Literal
@@ -217,6 +217,8 @@ def _resolve_calibration(
         cams.append(calib.right)
     sized = [c.with_size(s) for c, s in zip(cams, sizes, strict=True)]
     notes = []
+    if src.kind == "mono" and calib.is_stereo:
+        notes.append(f"mono import: the left camera of the stereo calibration {calib.path}")
     maps = []
     for name, cam in zip(("left", "right"), sized, strict=False):
         maps.append(cam.undistort_maps())
@@ -269,7 +271,9 @@ def import_recording(
     """
     opts = options or ImportOptions()
     out = Path(out)
-    if out.exists() and not opts.overwrite and (not out.is_dir() or any(out.iterdir())):
+    if out.is_dir() and not any(out.iterdir()):
+        opts = replace(opts, overwrite=True)  # an empty folder is as good as none
+    if out.exists() and not opts.overwrite:
         raise SequenceError(
             out, None, "output folder already exists (choose another or --overwrite)"
         )
@@ -311,6 +315,7 @@ def import_recording(
         close = getattr(frames, "close", None)
         if close is not None:
             close()
+        src.close()
     report.notes[:0] = src.notes()
     return report
 

@@ -78,9 +78,8 @@ class BagWriter:
 
     def __enter__(self) -> BagWriter:
         from rosbags.rosbag1 import Writer as Writer1
-        from rosbags.rosbag2 import Writer as Writer2
-
         from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import Writer as Writer2
 
         target = self._stage_cm.__enter__()
         if self.ros == 1:

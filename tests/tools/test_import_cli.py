@@ -352,14 +352,20 @@ def test_existing_output_is_kept(
     synthetic: Sequence, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     bag = write_bag(synthetic, tmp_path / "rec", ros=2)
-    out = tmp_path / "out"
-    out.mkdir()
-    (out / "keep.txt").write_text("mine")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "keep.txt").write_text("mine")
+    for extra in ([], ["--overwrite"]):  # not a sequence folder: never replaced
+        assert main(["import", str(bag), "--out", str(mine), *extra]) == 2
+        assert "not a sequence folder" in capsys.readouterr().err
+        assert (mine / "keep.txt").read_text() == "mine"
+    out = tmp_path / "seq"
+    assert main(["import", str(bag), "--out", str(out), "--frames", "2"]) == 0
     assert main(["import", str(bag), "--out", str(out)]) == 2
     assert "already exists" in capsys.readouterr().err
-    assert (out / "keep.txt").read_text() == "mine"
+    assert len(load_sequence(out)) == 2
     assert main(["import", str(bag), "--out", str(out), "--overwrite"]) == 0
-    assert not (out / "keep.txt").exists() and (out / "frames.csv").is_file()
+    assert len(load_sequence(out)) == len(synthetic)
 
 
 # ------------------------------------------------------------------------------------------
