@@ -359,7 +359,7 @@ def test_existing_output_is_kept(
         assert main(["import", str(bag), "--out", str(mine), *extra]) == 2
         assert "not a sequence folder" in capsys.readouterr().err
         assert (mine / "keep.txt").read_text() == "mine"
-    out = tmp_path / "seq"
+    out = tmp_path / "imported"
     assert main(["import", str(bag), "--out", str(out), "--frames", "2"]) == 0
     assert main(["import", str(bag), "--out", str(out)]) == 2
     assert "already exists" in capsys.readouterr().err
