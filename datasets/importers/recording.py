@@ -153,6 +153,14 @@ def open_source(
         )
     if second is not None and source_kind(second) != kind:
         raise RecordingError(second, None, f"is not a {kind} like {paths[0]}")
+    if kind not in ("video", "folder") and (
+        options.timestamps is not None or options.rate_hz is not None
+    ):
+        raise RecordingError(
+            paths[0],
+            "--timestamps/--rate",
+            f"a {kind} has its own clock; these are for videos and image folders",
+        )
     if kind in ("rosbag1", "rosbag2"):
         return (
             BagSource(

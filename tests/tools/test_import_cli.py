@@ -16,6 +16,7 @@ import yaml
 from satpose.datasets.importers.writers import BagWriter, write_bag, write_euroc
 from satpose.datasets.sequence import Sequence, load_sequence
 from satpose.tools.cli import main
+from satpose.tools.import_cli import read_trajectory
 
 CALIB_TOL = 1e-9  # the brief's bound; bags carry K, D exactly and R, P to float rounding
 
@@ -146,6 +147,27 @@ def test_truth_in_the_other_convention_and_outside_its_span(
     np.testing.assert_allclose(got.truth.translation, synthetic.truth.translation[1:], atol=1e-9)
     np.testing.assert_allclose(got.truth.rotations(), synthetic.truth.rotations()[1:], atol=1e-9)
     assert [f.t_s for f in got] == [f.t_s for f in synthetic.frames[1:]]
+
+
+def test_trajectory_files_tum_satpose_and_euroc_csv(tmp_path: Path) -> None:
+    q = [float(v) for v in np.array([0.1, -0.2, 0.3, 0.9]) / np.linalg.norm([0.1, -0.2, 0.3, 0.9])]
+    tum = tmp_path / "a.tum"
+    tum.write_text(f"# t x y z qx qy qz qw\n1.5 1 2 3 {q[0]!r} {q[1]!r} {q[2]!r} {q[3]!r}\n")
+    ours = tmp_path / "groundtruth.csv"
+    ours.write_text(
+        f"frame,t_s,tx,ty,tz,qx,qy,qz,qw\n0,1.5,1,2,3,{q[0]!r},{q[1]!r},{q[2]!r},{q[3]!r}\n"
+    )
+    euroc = tmp_path / "data.csv"
+    euroc.write_text(
+        "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], "
+        f"q_RS_z []\n1500000000,1,2,3,{q[3]!r},{q[0]!r},{q[1]!r},{q[2]!r}\n"
+    )
+    for path in (tum, ours, euroc):
+        traj = read_trajectory(path)
+        np.testing.assert_array_equal(traj.t_s, [1.5])
+        np.testing.assert_array_equal(traj.translation, [[1, 2, 3]])
+        # TUM goes through Rigid3 (a rotation matrix and back): 1e-15; CSV is read as written.
+        np.testing.assert_allclose(traj.quat_xyzw, [q], rtol=0, atol=1e-15)
 
 
 def test_euroc_round_trip(synthetic: Sequence, tmp_path: Path) -> None:
