@@ -358,6 +358,12 @@ def _write(
     no_truth: list[float] = []
     with writer:
         for t, left, right in chain([first], frames):
+            pose = None
+            if truth is not None:
+                pose = truth.pose_at(t)
+                if pose is None:
+                    no_truth.append(t)
+                    continue
             imgs = [left] + ([right] if right is not None else [])
             for k, (cam, img) in enumerate(zip(("left", "right"), imgs, strict=False)):
                 if opts.grey:
@@ -375,12 +381,6 @@ def _write(
                         img, m[0], m[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
                     )
                 imgs[k] = img
-            pose = None
-            if truth is not None:
-                pose = truth.pose_at(t)
-                if pose is None:
-                    no_truth.append(t)
-                    continue
             if times and t <= times[-1]:
                 raise RecordingError(
                     Path(src.image_origin("left")),
