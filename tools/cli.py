@@ -401,6 +401,12 @@ def _register_campaign(subparsers: Any) -> None:
     register(subparsers)
 
 
+def _register_import(subparsers: Any) -> None:
+    from satpose.tools.import_cli import register
+
+    register(subparsers)
+
+
 EXTRA_COMMANDS: list[Callable[[Any], None]] = [
     colmap_cli.register,
     spin_cli.register,
@@ -408,6 +414,7 @@ EXTRA_COMMANDS: list[Callable[[Any], None]] = [
     _register_bracket,
     _register_rings,
     _register_campaign,
+    _register_import,
 ]
 
 
