@@ -119,7 +119,7 @@ def main() -> None:
                 f"{s['dropped']} | {s['dropped_frames'] or '-'} | {lat['median']:.0f} | "
                 f"{lat['p95']:.0f} | "
                 + (f"{pick['p95']:.0f} ({pick['max']:.0f})" if pick["p95"] is not None else "-")
-                + f" | {len(result.run.estimate)} |"
+                + f" | {s['step_cpu_ms']['median']:.0f} | {len(result.run.estimate)} |"
             )
             stages[rate] = stage_medians(result)
             loads.append(f"| {rate:g} Hz | {before} | {after} |")
@@ -141,6 +141,7 @@ def main() -> None:
         "latency median [ms]",
         "latency p95 [ms]",
         "pickup p95 (max) when idle [ms]",
+        "step CPU median [ms]",
         "frames in trajectory",
     ]
     header = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns)
@@ -162,8 +163,9 @@ Latency: from the frame's arrival (the newest modification time of its images an
 frames.csv when its row was read) to the end of its step (frontend, the three estimators,
 run.rrd, the trajectory.csv row). Pickup: arrival until the tracker found the frame, over the
 frames that arrived while it was idle (a frame arriving during another frame's step waits for
-it). Dropped: complete frames that were not the newest when the tracker was free (live_frames.csv
-names each with its reason).
+it). Step CPU: the process's CPU time during a frame's step (all threads), what the step costs
+without waiting for a core of the shared machine. Dropped: complete frames that were not the
+newest when the tracker was free (live_frames.csv names each with its reason).
 
 ## Where the time of a processed frame goes (median [ms])
 

@@ -84,6 +84,7 @@ LIVE_COLUMNS = [
     "wait_ms",
     "latency_ms",
     "busy",
+    "cpu_ms",
 ]
 """live_frames.csv: ``status`` ``processed`` or ``dropped`` (``reason``: ``behind`` — a newer
 frame was complete when the tracker was free; ``before start`` — already complete when
@@ -91,7 +92,9 @@ tracking started, and not the newest; ``incomplete: ...`` — its images never b
 before a newer frame did, or before the end); ``arrival_unix_s`` when it became complete (Unix
 time); ``pickup_ms`` from then until the tracker saw it; ``wait_ms`` from then until its step
 started; ``latency_ms`` until its step ended (empty for dropped frames); ``busy``: 1 if it
-arrived while another frame was being processed (its pickup then includes that wait)."""
+arrived while another frame was being processed (its pickup then includes that wait);
+``cpu_ms`` the CPU time of the process during its step (all threads: what the step costs
+without waiting for a shared machine's cores)."""
 
 
 @dataclass(frozen=True)
@@ -148,7 +151,7 @@ def frame_ranges(frames: list[int]) -> str:
 def live_summary(frames: pd.DataFrame, stopped_by: str) -> dict[str, Any]:
     """The counts and latency statistics of live_frames.csv's table: frames seen, processed,
     dropped (by reason, and which), latency and pickup [ms] (median, p95, max; pickup over the
-    frames that arrived while the tracker was idle), why it stopped."""
+    frames that arrived while the tracker was idle), the step's CPU time, why it stopped."""
     done = frames[frames["status"] == "processed"]
     dropped = frames[frames["status"] == "dropped"]
     reasons = Counter(str(r).split(":")[0] for r in dropped["reason"])
@@ -162,6 +165,7 @@ def live_summary(frames: pd.DataFrame, stopped_by: str) -> dict[str, Any]:
         "dropped_frames": frame_ranges(dropped["frame"].astype(int).tolist()),
         "latency_ms": _stats(done["latency_ms"]),
         "pickup_idle_ms": _stats(idle["pickup_ms"]),
+        "step_cpu_ms": _stats(done["cpu_ms"]),
     }
 
 
@@ -253,7 +257,7 @@ class _Tracker:
         self._log(row)
 
     def process(self, f: ArrivedFrame) -> None:
-        begin = time.time()
+        begin, cpu = time.time(), time.process_time()
         self.step(f.index, f.t_s, f.read, f.files)
         causal = self.step.causal()
         if causal is not None and len(causal) > self.written:
@@ -271,6 +275,7 @@ class _Tracker:
                 "wait_ms": 1e3 * (begin - f.arrival_s),
                 "latency_ms": 1e3 * (end - f.arrival_s),
                 "busy": int(f.arrival_s < self.busy_until),
+                "cpu_ms": 1e3 * (time.process_time() - cpu),
             }
         )
         self.busy_until = end
@@ -439,8 +444,8 @@ def _timings(step: FrameStep, table: pd.DataFrame) -> pd.DataFrame:
     """timings.csv: the step's rows with the live columns of the processed frames."""
     tdf = timings_frame(step.timing_rows)
     live = table[table["status"] == "processed"][
-        ["frame", "arrival_unix_s", "pickup_ms", "wait_ms", "latency_ms"]
-    ]
+        ["frame", "arrival_unix_s", "pickup_ms", "wait_ms", "latency_ms", "cpu_ms"]
+    ].rename(columns={"cpu_ms": "step_cpu_ms"})
     return tdf.merge(live, on="frame", how="left")
 
 
