@@ -321,11 +321,30 @@ def read_image(path: Path, camera: PinholeCamera) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def load_sequence(path: str | Path) -> Sequence:
-    """Open a sequence folder (format v1). Reads the small files now, images lazily.
+@dataclass(frozen=True, kw_only=True)
+class SequenceHeader:
+    """sequence.yaml and calib.yaml: what a sequence is before any of its frames.
+
+    Attributes:
+        root: the sequence folder.
+        name, kind, rate_hz, generator: from sequence.yaml.
+        calibration: from calib.yaml.
+    """
+
+    root: Path
+    name: str
+    kind: Kind
+    rate_hz: float
+    calibration: Calibration
+    generator: Mapping[str, Any] = field(default_factory=dict)
+
+
+def load_header(path: str | Path) -> SequenceHeader:
+    """Read sequence.yaml and calib.yaml only (a folder still being recorded has no complete
+    frames.csv yet; `load_sequence` reads the rest).
 
     Raises:
-        SequenceError: naming the file and field for every violation of the format.
+        SequenceError: naming the file and field.
     """
     root = Path(path)
     if not root.is_dir():
@@ -353,21 +372,33 @@ def load_sequence(path: str | Path) -> Sequence:
     generator = meta.get("generator") or {}
     if not isinstance(generator, dict):
         raise SequenceError(meta_path, "generator", "must be a mapping")
-
     calib = _read_calibration(root / "calib.yaml", kind)
-    frames = _read_frames(root, kind, calib)
+    return SequenceHeader(
+        root=root, name=name, kind=kind, rate_hz=rate, calibration=calib, generator=generator
+    )
+
+
+def load_sequence(path: str | Path) -> Sequence:
+    """Open a sequence folder (format v1). Reads the small files now, images lazily.
+
+    Raises:
+        SequenceError: naming the file and field for every violation of the format.
+    """
+    head = load_header(path)
+    root = head.root
+    frames = _read_frames(root, head.kind, head.calibration)
     truth = _read_truth(root / "groundtruth.csv", frames)
     target = _read_target(root / "target.yaml")
     return Sequence(
         root=root,
-        name=name,
-        kind=kind,
-        rate_hz=rate,
-        calibration=calib,
+        name=head.name,
+        kind=head.kind,
+        rate_hz=head.rate_hz,
+        calibration=head.calibration,
         frames=frames,
         truth=truth,
         target=target,
-        generator=generator,
+        generator=head.generator,
     )
 
 
@@ -1092,10 +1123,12 @@ __all__ = [
     "GroundTruth",
     "Ring",
     "Sequence",
+    "SequenceHeader",
     "SequenceWriter",
     "TargetGeometry",
     "check_png_header",
     "load_calibration",
+    "load_header",
     "load_sequence",
     "load_target",
     "read_image",

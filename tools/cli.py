@@ -312,6 +312,7 @@ def cmd_run(args: argparse.Namespace) -> None:
             config,
             overwrite=args.overwrite,
             spawn=args.spawn,
+            connect=getattr(args, "connect", None),
             progress=progress,
         )
     finally:
@@ -407,6 +408,12 @@ def _register_import(subparsers: Any) -> None:
     register(subparsers)
 
 
+def _register_live(subparsers: Any) -> None:
+    from satpose.tools.live import register
+
+    register(subparsers)
+
+
 EXTRA_COMMANDS: list[Callable[[Any], None]] = [
     colmap_cli.register,
     spin_cli.register,
@@ -415,6 +422,7 @@ EXTRA_COMMANDS: list[Callable[[Any], None]] = [
     _register_rings,
     _register_campaign,
     _register_import,
+    _register_live,
 ]
 
 

@@ -13,6 +13,7 @@ time series of errors, spin rate and stage timings. Timeline: ``frame``.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,8 @@ from satpose.datasets.geometry import Rigid3, matrix_to_quat_xyzw
 from satpose.datasets.sequence import Calibration, TargetGeometry
 from satpose.frontend.conics import Ellipse, circle_to_conic, conic_to_ellipse
 from satpose.frontend.measurements import FrameMeasurements, LandmarkKind
+
+log = logging.getLogger(__name__)
 
 WORLD = "world"
 CAMERA = {"left": "world/camera/left", "right": "world/camera/right"}
@@ -99,9 +102,31 @@ def _ellipse_strip(e: Ellipse, n: int = 96) -> np.ndarray:
     return np.vstack([p, p[:1]])
 
 
+DEFAULT_VIEWER = "rerun+http://127.0.0.1:9876/proxy"
+"""Where a viewer started by ``rerun`` (or ``--spawn``) listens by default."""
+
+
+def viewer_url(address: str) -> str:
+    """A Rerun viewer's gRPC URL from ``--connect``'s argument: a URL as is
+    (``rerun+http://host:9876/proxy``), ``HOST:PORT`` or ``HOST`` completed to one, ``""``
+    the local viewer's default (`DEFAULT_VIEWER`)."""
+    if not address:
+        return DEFAULT_VIEWER
+    if "://" in address:
+        return address
+    host, _, port = address.partition(":")
+    return f"rerun+http://{host or '127.0.0.1'}:{port or 9876}/proxy"
+
+
 class RunRecorder:
     """Writes run.rrd while the pipeline runs (the pipeline calls `log_frame` per frame and
-    `log_final` once), then `close`."""
+    `log_final` once), then `close`.
+
+    Args:
+        path: the recording file; always written, also while streaming to a viewer.
+        spawn: start a Rerun viewer and stream to it as well.
+        connect: also stream to the viewer at this gRPC URL (`viewer_url`).
+    """
 
     def __init__(
         self,
@@ -110,14 +135,19 @@ class RunRecorder:
         target: TargetGeometry | None = None,
         config: RecordingConfig | None = None,
         spawn: bool = False,
+        connect: str | None = None,
     ) -> None:
         self.config = config or RecordingConfig()
         self.calibration = calibration
         self.target = target
         self.rec = rr.RecordingStream(application_id="satpose", recording_id=None)
-        self.rec.save(str(path))
+        # one stream, several sinks: spawn()/connect_grpc() alone would replace the file sink
+        sinks: list[rr.FileSink | rr.GrpcSink] = [rr.FileSink(str(path))]
+        self.viewers = [u for u in ([DEFAULT_VIEWER] if spawn else []) + [connect] if u]
         if spawn:
-            self.rec.spawn(connect=True)
+            self.rec.spawn(connect=False)
+        sinks += [rr.GrpcSink(u) for u in dict.fromkeys(self.viewers)]
+        self.rec.set_sinks(*sinks)
         self.rec.send_blueprint(blueprint())
         self._tracks: dict[str, list[np.ndarray]] = {name: [] for name in TRAJECTORIES}
         self._radius: float | None = None
@@ -362,5 +392,10 @@ class RunRecorder:
         )
 
     def close(self) -> None:
-        self.rec.flush()
+        """Flush and close every sink. A viewer that cannot be reached is a warning (run.rrd
+        is complete regardless), not an error."""
+        try:
+            self.rec.flush()
+        except RuntimeError as exc:
+            log.warning("Rerun viewer %s: %s", ", ".join(self.viewers), str(exc).splitlines()[0])
         self.rec.disconnect()
