@@ -356,6 +356,7 @@ def _run(
                         list(e.left_cam_from_target),
                         [_truth_pose(seq, int(i)) for i in e.frame],
                         list(e.spin_rate_deg_per_frame(1.0 / seq.rate_hz)),
+                        list(e.t_s),
                     ),
                 )
                 if why:
