@@ -174,11 +174,15 @@ def write_rosbag2(est: Estimate, out: Path, *, overwrite: bool = False) -> Path:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ExportError(f"{out}: cannot create the folder ({exc.strerror or exc})") from None
-    stage = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"  # the Writer creates it
+    # the bag is built as <hidden staging folder>/<out's name>, because the Writer names its
+    # storage file after the bag folder (metadata.yaml refers to it by that name)
+    stage = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    bag = stage / out.name
     store = _typestore()
     types = store.types
     try:
-        with Writer(stage, version=ROSBAG2_VERSION) as writer:
+        stage.mkdir()
+        with Writer(bag, version=ROSBAG2_VERSION) as writer:
             pose_conn = writer.add_connection(POSE_TOPIC, POSE_MSGTYPE, typestore=store)
             twist_conn = writer.add_connection(TWIST_TOPIC, TWIST_MSGTYPE, typestore=store)
             for k, T in enumerate(est.left_cam_from_target):
@@ -219,7 +223,8 @@ def write_rosbag2(est: Estimate, out: Path, *, overwrite: bool = False) -> Path:
                 )
                 writer.write(pose_conn, ns, store.serialize_cdr(pose, POSE_MSGTYPE))
                 writer.write(twist_conn, ns, store.serialize_cdr(twist, TWIST_MSGTYPE))
-        replace_dir(stage, out, overwrite=True)
+        replace_dir(bag, out, overwrite=True)
+        shutil.rmtree(stage, ignore_errors=True)
     except (OSError, WriterError) as exc:
         shutil.rmtree(stage, ignore_errors=True)
         raise ExportError(f"{out}: cannot write the bag ({exc})") from None

@@ -110,6 +110,7 @@ def test_rosbag2_reads_back_with_covariances(run: Path, estimate: Estimate, tmp_
         want_t = np.block([[Ct[3:, 3:], Ct[3:, :3]], [Ct[:3, 3:], Ct[:3, :3]]])
         np.testing.assert_allclose(np.asarray(tw.covariance).reshape(6, 6), want_t, atol=1e-12)
     assert not [p.name for p in bag.parent.iterdir() if p.name.startswith(".")]
+    assert sorted(p.name for p in bag.iterdir()) == ["bag.db3", "metadata.yaml"]
 
 
 def test_rotation_variance_lands_on_the_camera_axis() -> None:
