@@ -479,6 +479,7 @@ class FrameStep:
                         list(e.left_cam_from_target),
                         [_truth_pose(self.truth, int(i)) for i in e.frame],
                         list(e.spin_rate_deg_per_frame(1.0 / self.rate_hz)),
+                        list(e.t_s),
                     ),
                 )
                 if why:
