@@ -274,8 +274,11 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
     sigma = np.sqrt(c.sigma_floor_px**2 + (size / np.maximum(flux_snr, 1e-3)) ** 2)
     sigma = np.where(saturated, np.hypot(sigma, c.saturated_sigma_px), sigma)
     # Brightest first, by flux over local noise (the same order as flux where the noise is
-    # uniform; spots on a bright noisy foreground fall behind the sky's stars).
-    order = np.lexsort((-flux_snr, -(nsat[idx] * saturated)))[: c.max_stars]
+    # uniform; spots on a bright noisy foreground fall behind the sky's stars). Not by the
+    # flux's SNR: dividing by sqrt(area) put small faint spots before large bright stars,
+    # and the pattern search needs the catalogue's brightness order (a dense JPEG field
+    # with a comet was not identified).
+    order = np.lexsort((-f / loc_noise[idx], -(nsat[idx] * saturated)))[: c.max_stars]
     return ImageStars(
         px=np.column_stack([cx, cy])[order],
         flux=f[order],
