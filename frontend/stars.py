@@ -49,8 +49,9 @@ from satpose.frontend.star_events import StreamStats, stream_noise
 from satpose.frontend.star_sensor import (
     Refractory,
     Thresholds,
-    estimate_refractory,
     estimate_thresholds,
+    pixel_intervals,
+    refractory_from_stream,
     star_passes,
 )
 
@@ -376,6 +377,9 @@ class StreamLevels:
     refractory_used_s: float
 
 
+REFRACTORY_INTERVALS = 200_000
+"""Most same-polarity intervals the dead time is measured from (`stream_levels_dead_time`)."""
+
 DEAD_TIME_MAX_GAIN = 1.0
 """Most thresholds one interval's dead time adds to a level (`stream_levels_dead_time`):
 ``tau / (dt - tau)`` is capped here, since an interval within the timestamp jitter of the
@@ -390,6 +394,7 @@ def stream_levels_dead_time(
     refractory_s: float | None,
     use: np.ndarray | None = None,
     edge_s: float | None = None,
+    hot_intervals_us: np.ndarray | None = None,
 ) -> StreamLevels:
     """`stream_levels` with the pixel's dead time in its levels.
 
@@ -400,8 +405,9 @@ def stream_levels_dead_time(
     Each event's level is its polarity sum plus the sum over its pixel's earlier in-run
     intervals of ``tau / (dt - tau)`` (capped at `DEAD_TIME_MAX_GAIN`), signed like the
     run; pixels anchored at their last event keep their anchor. ``refractory_s`` None: the
-    dead time is measured first from the same-polarity intervals of the events in ``use``
-    (`estimate_refractory`) and used if identified, else 0."""
+    dead time is measured first (`star_sensor.refractory_from_stream`: the intervals of the
+    hot pixels, ``hot_intervals_us``, else the same-polarity intervals of the events in
+    ``use``) and used if identified, else 0."""
     n_ev = np.asarray(t_s).size
     if n_ev == 0:
         return StreamLevels(np.zeros(0), np.zeros(0, dtype=bool), None, None, 0.0)
@@ -421,7 +427,10 @@ def stream_levels_dead_time(
         if use is not None:
             u = np.asarray(use, bool)[s.order]
             ok[1:] &= u[1:] & u[:-1]
-        found = estimate_refractory(np.rint(dt[ok] * 1e6))
+        iv = dt[ok]
+        if iv.size > REFRACTORY_INTERVALS:  # an even subset: plenty for a 200-bin histogram
+            iv = iv[:: -(-iv.size // REFRACTORY_INTERVALS)]
+        found = refractory_from_stream(np.rint(iv * 1e6), hot_intervals_us)
         tau = found.refractory_s if found.identified else 0.0
     if tau <= 0:
         return StreamLevels(levels, peak, None, found, 0.0)
@@ -904,9 +913,10 @@ class StarTrackerConfig:
         refractory_s: the pixels' dead time [s]; None: measured from the stream's
             same-polarity intervals (`star_sensor.estimate_refractory`; 0 where not
             identified).
-        dead_time_levels: the spot fit's levels count the log intensity's rise during each
-            dead time (`stream_levels_dead_time`: a DVS pixel resets its reference when
-            the dead time ends).
+        dead_time_levels: the spot fit's levels may count the log intensity's rise during
+            each dead time (`stream_levels_dead_time`: a DVS pixel resets its reference when
+            the dead time ends); whether they do is decided on the first
+            ``dead_time_outputs`` fits by their costs (`StarTracker._choose_dead_time`).
     """
 
     window_s: float = 0.005
@@ -942,6 +952,7 @@ class StarTrackerConfig:
     psf_outputs: int = 20
     refractory_s: float | None = None
     dead_time_levels: bool = True
+    dead_time_outputs: int = 20
 
     def __post_init__(self) -> None:
         if not (0 < self.window_s <= self.lis_window_s):
@@ -1043,6 +1054,11 @@ class StarTracker:
         self.stream_stats: StreamStats | None = None  # `run_event_tracker`'s noise findings
         self.refractory: Refractory | None = None  # the dead time measured from the stream
         self.refractory_used_s = 0.0  # the dead time the spot fit's levels account for
+        # Whether the pixels reset after their dead time (None: not decided yet;
+        # `_choose_dead_time`), and the two ladders' summed fit costs.
+        self.dead_time_reset: bool | None = None
+        self.dead_time_costs = np.zeros(2)
+        self._dead_seen = 0
         # `run_event_tracker`'s stream without hot pixels and its noise-filter mask.
         self.stream: tuple[Events, np.ndarray] | None = None
         # PSF sigma of the spot fit: the configured one until measured (`_measure_psf`).
@@ -1216,6 +1232,18 @@ class StarTracker:
         step = 0.5 * (y0 - y2) / den if den > 0 else 0.0
         log_f = math.log(_PSF_FACTORS[k]) + float(np.clip(step, -1, 1)) * math.log(2) / 4
         self.psf_sigma_px = c.psf_sigma_px * math.exp(log_f)
+
+    def _choose_dead_time(self, cost_reset: float, cost_plain: float) -> None:
+        """Whether the pixels reset their reference when the dead time ends (a DVS pixel:
+        each step is ``C`` plus the rise while blind, `stream_levels_dead_time`) or count
+        every crossing (a crossing while blind is lost but still moves the reference, as in
+        ESIM): over the first ``dead_time_outputs`` spot fits with a dead time the fit's
+        Huber costs (the same events) of both ladders are summed, and the lower one is used
+        from then on (`dead_time_reset`)."""
+        self.dead_time_costs += [cost_reset, cost_plain]
+        self._dead_seen += 1
+        if self._dead_seen >= self.config.dead_time_outputs:
+            self.dead_time_reset = bool(self.dead_time_costs[0] <= self.dead_time_costs[1])
 
     def _accept(self, sol: AttitudeSolution) -> AttitudeSolution:
         if sol.R is None:
@@ -1398,8 +1426,10 @@ class StarTracker:
         use &= frac < c.fit_max_events / np.maximum(n_star, 1)[np.maximum(li, 0)]
         lvl = lvl_g[use]
         # The log intensity each event stands for, in thresholds: the ladder level plus
-        # what the dead times before it added (a DVS pixel's reset).
-        lvl_c = lvl if dead_time is None else lvl + dead_time[gi][use]
+        # what the dead times before it added (a DVS pixel's reset), unless the stream's
+        # first fits preferred the plain ladder (`_choose_dead_time`).
+        with_dead = None if dead_time is None else lvl + dead_time[gi][use]
+        lvl_c = lvl if with_dead is None or self.dead_time_reset is False else with_dead
         li = li[use]
         top = np.zeros(int(ok.sum()))
         np.maximum.at(top, li, lvl_c)
@@ -1412,13 +1442,13 @@ class StarTracker:
         # prediction (0.4 s of outputs) averages away.
         shared_rate = c.fit_rate_sigma_rad_s > 0 and span_s > 1.5 * c.window_s
 
-        def run_fit(sigma: float) -> SpotFit:
+        def run_fit(sigma: float, levels_c: np.ndarray = lvl_c) -> SpotFit:
             return fit_moving_spots(
                 li,
                 ex_f[use],
                 ey_f[use],
                 et[use] - t_mid,
-                lvl_c * C,
+                levels_c * C,
                 px_mid,
                 vel,
                 log_flux0,
@@ -1432,6 +1462,8 @@ class StarTracker:
         fit = run_fit(sigma_psf)
         if self._psf_costs is not None and int(fit.ok.sum()) >= c.min_stars:
             self._measure_psf(run_fit)
+        if with_dead is not None and self.dead_time_reset is None and fit.ok.sum() >= c.min_stars:
+            self._choose_dead_time(fit.cost, run_fit(sigma_psf, lvl).cost)
         # Fitted stars with the fit's own noise (mean of the two axes' variances, floored);
         # stars the fit could not take (fewer than 4 levelled events: most of them at
         # 0.1 deg/s) keep their moved balanced centroid with centroid_sigma_px.
@@ -1523,7 +1555,10 @@ def run_event_tracker(
         events, W, H, c.noise_window_s, c.hot_pixel_ratio, c.noise_min_share
     )
     tracker.stream_stats = noise
+    hot_dt: np.ndarray | None = None
     if noise.hot_pixels.size:
+        hot_ev = _subset(events, ~not_hot)
+        hot_dt = pixel_intervals(hot_ev.t_us, hot_ev.x, hot_ev.y)
         events, clean = _subset(events, not_hot), clean[not_hot]
     tracker.stream = (events, clean)
     selected = np.ones(len(events), dtype=bool)
@@ -1538,7 +1573,9 @@ def run_event_tracker(
             levels = ladder_levels(events.p, passes)
     elif len(events) and (fits or "drop_peak" in (c.event_selection, c.acquisition_selection)):
         tau = c.refractory_s if (fits and c.dead_time_levels) else 0.0
-        sl = stream_levels_dead_time(events.t_s, events.x, events.y, events.p, tau, clean)
+        sl = stream_levels_dead_time(
+            events.t_s, events.x, events.y, events.p, tau, clean, hot_intervals_us=hot_dt
+        )
         tracker.refractory, tracker.refractory_used_s = sl.refractory, sl.refractory_used_s
         all_levels, peak, dead = sl.levels, sl.peak, sl.dead_time
         levels = all_levels if fits else None
@@ -1635,7 +1672,8 @@ def measure_thresholds(
     """The sensor's mean ON and OFF contrast thresholds from the stream `run_event_tracker`
     tracked (its first ``max_events`` events) and the attitudes it output
     (`star_sensor.estimate_thresholds`: event counts of identified stars' passes against
-    their catalogue magnitudes, each interval counted with the dead time the levels used).
+    their catalogue magnitudes, each interval counted with the dead time where the spot
+    fit's levels count it: pixels that reset, `StarTracker.dead_time_reset`).
     None: no stream, fewer than two attitudes, or too few stars."""
     from scipy.spatial.transform import Rotation, Slerp
 
@@ -1653,14 +1691,8 @@ def measure_thresholds(
     def attitude_at(t: np.ndarray) -> np.ndarray:
         return np.asarray(slerp(np.clip(t, t_ok[0], t_ok[-1])).as_matrix())
 
-    passes = star_passes(
-        events.t_us[:n],
-        events.x[:n],
-        events.y[:n],
-        events.p[:n],
-        clean[:n],
-        tracker.refractory_used_s,
-    )
+    tau = tracker.refractory_used_s if tracker.dead_time_reset else 0.0
+    passes = star_passes(events.t_us[:n], events.x[:n], events.y[:n], events.p[:n], clean[:n], tau)
     inside = (passes.t_peak_s >= t_ok[0]) & (passes.t_peak_s <= t_ok[-1])
     cam = tracker.cam
     return estimate_thresholds(

@@ -140,10 +140,19 @@ def refractory_record(tracker: StarTracker, stated: bool) -> dict[str, Any]:
     """config.yaml's record of the dead time: what the stream showed and what the spot fit's
     levels used (`frontend.stars.stream_levels_dead_time`)."""
     used = round(float(tracker.refractory_used_s), 7)
+    reset = tracker.dead_time_reset
+    ladder = {
+        True: "reset (each step C plus the rise while blind)",
+        False: "plain (the fits preferred whole thresholds)",
+        None: "plain (no dead time, or too few fits to decide)",
+    }[reset if used > 0 else None]
+    if reset is not None:
+        c = tracker.dead_time_costs
+        ladder += f"; fit costs reset {c[0]:.0f}, plain {c[1]:.0f}"
     r = tracker.refractory
     if stated or r is None:
         src = "stated (event_sensor.refractory_s)" if stated else "configured"
-        return {"used_s": used, "source": src}
+        return {"used_s": used, "source": src, "levels": ladder}
     out: dict[str, Any] = {
         "measured_s": round(float(r.refractory_s), 7),
         "sigma_s": round(float(r.sigma_s), 7),
@@ -151,11 +160,9 @@ def refractory_record(tracker: StarTracker, stated: bool) -> dict[str, Any]:
         "edge_blur_s": round(float(r.jitter_s), 7),
         "intervals": int(r.intervals),
         "used_s": used,
+        "levels": ladder,
     }
-    if not r.identified:
-        out["source"] = "not identified (measured_s is an upper bound; 0 used)"
-    else:
-        out["source"] = "measured" if r.refractory_s > 0 else "measured: none"
+    out["source"] = r.source + ("" if r.identified else "; 0 used")
     return out
 
 
