@@ -913,8 +913,9 @@ class StarTrackerConfig:
         refractory_s: the pixels' dead time [s]; None: measured from the stream's
             same-polarity intervals (`star_sensor.estimate_refractory`; 0 where not
             identified).
-        dead_time_levels: the spot fit's levels may count the log intensity's rise during
-            each dead time (`stream_levels_dead_time`: a DVS pixel resets its reference when
+        dead_time_levels: (off by default: on the second model the fits preferred the plain
+            ladder, docs/stars.md) the spot fit's levels may count the log intensity's rise
+            during each dead time (`stream_levels_dead_time`: a DVS pixel resets its reference when
             the dead time ends); whether they do is decided on the first
             ``dead_time_outputs`` fits by their costs (`StarTracker._choose_dead_time`).
     """
@@ -951,7 +952,7 @@ class StarTrackerConfig:
     static_motion_px: float = 1.0
     psf_outputs: int = 20
     refractory_s: float | None = None
-    dead_time_levels: bool = True
+    dead_time_levels: bool = False
     dead_time_outputs: int = 20
 
     def __post_init__(self) -> None:
@@ -1572,12 +1573,13 @@ def run_event_tracker(
         if fits:
             levels = ladder_levels(events.p, passes)
     elif len(events) and (fits or "drop_peak" in (c.event_selection, c.acquisition_selection)):
-        tau = c.refractory_s if (fits and c.dead_time_levels) else 0.0
         sl = stream_levels_dead_time(
-            events.t_s, events.x, events.y, events.p, tau, clean, hot_intervals_us=hot_dt
+            events.t_s, events.x, events.y, events.p, c.refractory_s, clean, hot_intervals_us=hot_dt
         )
-        tracker.refractory, tracker.refractory_used_s = sl.refractory, sl.refractory_used_s
-        all_levels, peak, dead = sl.levels, sl.peak, sl.dead_time
+        tracker.refractory = sl.refractory
+        if fits and c.dead_time_levels:
+            tracker.refractory_used_s, dead = sl.refractory_used_s, sl.dead_time
+        all_levels, peak = sl.levels, sl.peak
         levels = all_levels if fits else None
         if c.event_selection == "drop_peak":
             selected = ~peak

@@ -144,7 +144,7 @@ def refractory_record(tracker: StarTracker, stated: bool) -> dict[str, Any]:
     ladder = {
         True: "reset (each step C plus the rise while blind)",
         False: "plain (the fits preferred whole thresholds)",
-        None: "plain (no dead time, or too few fits to decide)",
+        None: "plain (no dead time used: dead_time_levels off, or too few fits)",
     }[reset if used > 0 else None]
     if reset is not None:
         c = tracker.dead_time_costs

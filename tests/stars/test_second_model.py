@@ -311,7 +311,7 @@ def test_track_records_what_it_measured(tmp_path: Path) -> None:
     assert measured["psf_sigma_px"] > 0
     ref = measured["refractory"]
     assert ref["source"] == "hot pixels" and ref["identified"]
-    assert abs(ref["measured_s"] - 3e-4) <= 6e-5 and ref["used_s"] == ref["measured_s"]
+    assert abs(ref["measured_s"] - 3e-4) <= 6e-5 and ref["used_s"] == 0.0  # ladder off
     assert measured["contrast_threshold"]["used"] == 0.25
     assert "measured" in measured["contrast_threshold"]
     calib = yaml.safe_load((seq / "calib.yaml").read_text(encoding="utf-8"))
