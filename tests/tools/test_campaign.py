@@ -3,9 +3,11 @@ on purpose, resuming, and the time limit."""
 
 from __future__ import annotations
 
+import json
 import resource
 import shutil
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -319,7 +321,8 @@ def test_spin_cell_matches_the_spin_frontend(rendered_spin: Path, tmp_path: Path
     assert seq.truth is not None and seq.truth.angular_velocity is not None
     truth = np.degrees(np.linalg.norm(seq.truth.angular_velocity, axis=1))
     direct = spin_stats([(k, s.fit) for k, s in enumerate(steps) if s.fit is not None], truth)
-    assert stats == direct
+    # Field by field, NaN equal to NaN (one disjoint window has no spread): JSON text.
+    assert json.dumps(asdict(stats), sort_keys=True) == json.dumps(asdict(direct), sort_keys=True)
     assert stats.windows == len(seq) - 19 + 1  # one estimate per frame once 19 are buffered
     # 60 deg/s below the stated fold: accepted and near the truth (noisy: 0.5 deg/s)
     assert stats.status["ok"] >= 1 and abs(stats.bias) < 0.5
@@ -350,9 +353,11 @@ def test_bracket_cell_round_trips_its_score(tmp_path: Path) -> None:
     # Each frame has a pose or the reason it has none.
     assert all(("e_pos_m" in r) != ("reason" in r) for r in score["rows"])
     assert row["frames_with_pose"] == sum("e_pos_m" in r for r in score["rows"])
-    # The same member scored again: the same rows, and JSON keeps every float exactly.
+    # The same member scored again: the same rows, and JSON keeps every float exactly (the
+    # CPU time aside).
     again = score_sequence(tmp_path / "seq", tmp_path / "again")
-    assert score_to_json(again) == row["bracket.score"]
+    again["cpu_s"] = score["cpu_s"]
+    assert score_to_json(again) == score_to_json(score)
 
 
 def test_peak_memory_is_the_cells_own() -> None:
