@@ -26,12 +26,14 @@ The axes (each may stand in ``base`` or in ``axes``):
   ``stereo`` (`run_pipeline` and `evaluate_run`; with ``estimator: frontend`` the stereo
   frontend alone, scored per frame), ``spin`` (the mono spin-rate frontend, `run_spin`) or
   ``bracket`` (the mono bracket method, `run_bracket`; ``scenario: bracket-random`` draws
-  member ``seed`` of the bracket family);
+  member ``seed`` of the bracket family) or ``bracket-mc`` (seed 002's Monte Carlo run on
+  simulated image points, `satpose.tools.bracket_montecarlo`: no scene, no render; a
+  ``seed`` and a ``config``);
 - ``estimator``: ``online``, ``offline``, ``kalman`` or ``frontend`` (stereo); ``offline``,
   ``online``, ``kalman`` or ``none`` (bracket; default ``none``, the per-frame poses); not
   for spin;
 - ``config``: dotted overrides of the pipeline's config: `PipelineConfig` (stereo),
-  `SpinConfig` (spin), `StrutDetectorConfig` (bracket).
+  `SpinConfig` (spin), `StrutDetectorConfig` (bracket), `MonteCarloConfig` (bracket-mc).
 
 ``perturb`` and ``config`` take a mapping of named variants, or a list of variants (named by
 their keys and values). Several independent override axes multiply: ``perturb.NAME`` and
@@ -60,11 +62,12 @@ import yaml
 from satpose.datasets.config import to_plain, yaml_problem
 from satpose.datasets.errors import ConfigError
 
-PIPELINES = ("stereo", "spin", "bracket")
+PIPELINES = ("stereo", "spin", "bracket", "bracket-mc")
 ESTIMATORS = {
     "stereo": ("online", "offline", "kalman", "frontend"),
     "spin": (),
     "bracket": ("none", "offline", "online", "kalman"),
+    "bracket-mc": (),
 }
 """The estimator axis's values per pipeline (the first is the default; spin has none)."""
 AXES = (
@@ -285,6 +288,10 @@ def config_class(pipeline: str) -> type:
         from satpose.frontend.bracket_lines import StrutDetectorConfig
 
         return StrutDetectorConfig
+    if pipeline == "bracket-mc":
+        from satpose.tools.bracket_montecarlo import MonteCarloConfig
+
+        return MonteCarloConfig
     from satpose.tools.pipeline import PipelineConfig
 
     return PipelineConfig
@@ -397,6 +404,16 @@ def load_spec(path: str | Path) -> CampaignSpec:
 
 def _check_pipeline(p: Path, pipeline: str, choices: dict[str, list[tuple[Any, Any]]]) -> None:
     """The axes a pipeline cannot use (one line naming the key)."""
+    if pipeline == "bracket-mc":
+        scene = [k for k in choices if k.split(".")[0] in (*SYNTHETIC_ONLY, "sequence")]
+        scene = [k for k in scene if k != "seed"]
+        if scene:
+            _fail(p, scene[0], "bracket-mc simulates image points: no scene (a seed, a config)")
+        if not any(s is not None for s, _ in choices.get("seed", [])):
+            _fail(p, "seed", "bracket-mc needs a seed (base.seed or axes.seed)")
+        if "estimator" in choices:
+            _fail(p, "estimator", "bracket-mc has no estimator axis (config: smooth)")
+        return
     synthetic = [k for k in choices if k.split(".")[0] in SYNTHETIC_ONLY]
     scenarios = [v for v, _ in choices.get("scenario", [])]
     if "sequence" in choices:

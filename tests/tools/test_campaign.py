@@ -391,3 +391,45 @@ def test_peak_memory_sampled_where_the_mark_cannot_be_reset(
         del block
     assert memory.method == "sampled"
     assert memory.peak_mb >= 100.0
+
+
+def test_bracket_mc_cell_is_the_monte_carlo_run(tmp_path: Path) -> None:
+    from satpose.tools.bracket_montecarlo import MonteCarloConfig, result_from_json, run_config
+
+    spec = load_spec(
+        _write(
+            tmp_path,
+            "base: {pipeline: bracket-mc, seed: 1003}\n"
+            "axes: {config: {coarse: {dt_s: 1.0, ant_iterations: 2, smooth: true}}}\n",
+        )
+    )
+    (cell,) = spec.cells
+    row = _one_row(tmp_path, run_cell(cell, None, str(tmp_path), 300.0))
+    assert row["status"] == "ok", row["error"]
+    assert row["mc.dt_s"] == 1.0 and row["mc.ant_iterations"] == 2 and row["mc.smooth"]
+    got = result_from_json(row["mc.result"])
+    # The same seed run here: the same simulated points, so the same errors (NaN where a
+    # method gave no pose), bit for bit.
+    direct = run_config(MonteCarloConfig(dt_s=1.0, ant_iterations=2, smooth=True), 1003)
+    assert set(got.err) == set(direct.err) >= {"ours per frame", "ours + offline smoother"}
+    for method in direct.err:
+        np.testing.assert_array_equal(got.err[method], direct.err[method])
+    np.testing.assert_array_equal(got.nees, direct.nees)
+    assert got.candidates == direct.candidates and got.fails == direct.fails
+    assert len(got.t_s) == 21  # 20 s at 1 s
+    # 1 px noise, 10 mm vertex error: our per-frame solver within 20 cm / 10 deg RMS
+    # (statistical; the paper reports under 6 mm / 0.6 deg).
+    assert 0 < row["mc.ours_pos_rms_mm"] < 200.0 and row["mc.ours_rot_rms_deg"] < 10.0
+
+
+@pytest.mark.parametrize(
+    ("text", "key"),
+    [
+        ("base: {pipeline: bracket-mc}\n", "seed"),
+        ("base: {pipeline: bracket-mc, seed: 1, scenario: paper-docking}\n", "scenario"),
+        ("base: {pipeline: bracket-mc, seed: 1, config: {sigma: 1}}\n", "sigma"),
+    ],
+)
+def test_bracket_mc_spec_errors(tmp_path: Path, text: str, key: str) -> None:
+    with pytest.raises(ConfigError, match=key):
+        load_spec(_write(tmp_path, text))
