@@ -38,7 +38,8 @@ The axes (each may stand in ``base`` or in ``axes``):
 ``perturb`` and ``config`` take a mapping of named variants, or a list of variants (named by
 their keys and values). Several independent override axes multiply: ``perturb.NAME`` and
 ``config.NAME`` (e.g. ``perturb.target`` and ``perturb.rate``), each its own column; their
-overrides are merged in the order written.
+overrides are merged in the order written. ``axes`` may also be a list of such mappings: the
+union of their products (each with the same ``base``).
 
 Everything is checked before any work starts: unknown keys (of the spec, of an axis, or a
 dotted key that is not a field) are one-line errors naming the file and the key. The *values*
@@ -304,8 +305,6 @@ def load_spec(path: str | Path) -> CampaignSpec:
         ConfigError: one line naming the file and the key (malformed YAML, unknown key,
             unknown axis, preset, pipeline or estimator, missing sequence folder, bad value).
     """
-    from satpose.datasets.scenarios import Scenario
-
     p = Path(path)
     try:
         data = yaml.safe_load(p.read_text(encoding="utf-8"))
@@ -325,30 +324,56 @@ def load_spec(path: str | Path) -> CampaignSpec:
     if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not limit > 0:
         _fail(p, "time_limit_s", f"expected a positive number of seconds, got {limit!r}")
     base = data.get("base") or {}
-    axes = data.get("axes") or {}
-    for section, mapping in (("base", base), ("axes", axes)):
-        if not isinstance(mapping, dict):
-            _fail(p, section, "expected a mapping of axis -> value")
-        for key in mapping:
-            if not is_axis(key):
-                _fail(
-                    p,
-                    f"{section}.{key}",
-                    f"unknown axis; known axes: {list(AXES)} (and perturb.NAME, config.NAME)",
-                )
+    raw_axes = data.get("axes") or {}
+    if not isinstance(base, dict):
+        _fail(p, "base", "expected a mapping of axis -> value")
+    # A list of axes mappings is the union of their products (each with the same base).
+    products = raw_axes if isinstance(raw_axes, list) else [raw_axes]
+    if not products:
+        _fail(p, "axes", "lists no product")
+    for key in base:
+        if not is_axis(key):
+            _fail(
+                p,
+                f"base.{key}",
+                f"unknown axis; known axes: {list(AXES)} (and perturb.NAME, config.NAME)",
+            )
+    pipeline = _values(p, "pipeline", "base.pipeline", [base.get("pipeline", "stereo")])[0]
+    cells = []
+    for n, axes in enumerate(products):
+        section = "axes" if not isinstance(raw_axes, list) else f"axes[{n}]"
+        cells += _product(p, base, axes or {}, section, pipeline)
+    ids = [c.cell_id for c in cells]
+    if len(set(ids)) != len(ids):
+        raise ConfigError(f"{p}: axes list the same value twice (cells would repeat)")
+    return CampaignSpec(name=name, path=p, time_limit_s=float(limit), cells=cells)
+
+
+def _product(p: Path, base: dict[str, Any], axes: Any, section: str, pipeline: str) -> list[Cell]:
+    """The cells of one product: ``base`` with every combination of ``axes``."""
+    from satpose.datasets.scenarios import Scenario
+
+    if not isinstance(axes, dict):
+        _fail(p, section, "expected a mapping of axis -> value")
+    for key in axes:
+        if not is_axis(key):
+            _fail(
+                p,
+                f"{section}.{key}",
+                f"unknown axis; known axes: {list(AXES)} (and perturb.NAME, config.NAME)",
+            )
     both = sorted(set(base) & set(axes))
     if both:
-        _fail(p, f"axes.{both[0]}", "is given in both base and axes")
+        _fail(p, f"{section}.{both[0]}", "is given in both base and axes")
     if "pipeline" in axes:
-        _fail(p, "axes.pipeline", "one pipeline per campaign: give it in base")
-    pipeline = _values(p, "pipeline", "base.pipeline", [base.get("pipeline", "stereo")])[0]
+        _fail(p, f"{section}.pipeline", "one pipeline per campaign: give it in base")
 
     # Every axis as a list of (label, payload) choices; payload = the label for plain axes.
     choices: dict[str, list[tuple[Any, Any]]] = {}
     for key in axis_order([*base, *axes]):
         kind = key.split(".")[0]
         if key in axes:
-            raw, where = axes[key], f"axes.{key}"
+            raw, where = axes[key], f"{section}.{key}"
             if kind in OVERRIDES:
                 if raw is None or raw == {} or raw == []:
                     _fail(p, where, "lists no value")
@@ -373,7 +398,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
     if estimators:
         for est, _ in choices.setdefault("estimator", [(estimators[0], estimators[0])]):
             if est not in estimators:
-                where = "axes.estimator" if "estimator" in axes else "base.estimator"
+                where = f"{section}.estimator" if "estimator" in axes else "base.estimator"
                 _fail(
                     p,
                     where,
@@ -381,7 +406,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 )
 
     keys = list(choices)
-    cells = []
+    cells: list[Cell] = []
     for combo in itertools.product(*(choices[k] for k in keys)):
         picked = dict(zip(keys, combo, strict=True))
         merged = {
@@ -396,10 +421,7 @@ def load_spec(path: str | Path) -> CampaignSpec:
                 sequence=picked["sequence"][1] if "sequence" in picked else None,
             )
         )
-    ids = [c.cell_id for c in cells]
-    if len(set(ids)) != len(ids):
-        raise ConfigError(f"{p}: axes list the same value twice (cells would repeat)")
-    return CampaignSpec(name=name, path=p, time_limit_s=float(limit), cells=cells)
+    return cells
 
 
 def _check_pipeline(p: Path, pipeline: str, choices: dict[str, list[tuple[Any, Any]]]) -> None:

@@ -433,3 +433,26 @@ def test_bracket_mc_cell_is_the_monte_carlo_run(tmp_path: Path) -> None:
 def test_bracket_mc_spec_errors(tmp_path: Path, text: str, key: str) -> None:
     with pytest.raises(ConfigError, match=key):
         load_spec(_write(tmp_path, text))
+
+
+def test_a_list_of_axes_is_the_union_of_products(tmp_path: Path) -> None:
+    spec = load_spec(
+        _write(
+            tmp_path,
+            "base: {pipeline: bracket-mc}\n"
+            "axes:\n"
+            "- {seed: [1, 2, 3], config: {a: {}, b: {sigma_px: 0.5}}}\n"
+            "- {seed: [1], config: {slow: {ant_iterations: 40}}}\n",
+        )
+    )
+    assert [(c.axes["seed"], c.axes["config"]) for c in spec.cells] == [
+        (1, "a"), (1, "b"), (2, "a"), (2, "b"), (3, "a"), (3, "b"), (1, "slow")
+    ]  # fmt: skip
+    with pytest.raises(ConfigError, match="repeat"):
+        load_spec(
+            _write(tmp_path, "base: {pipeline: bracket-mc}\naxes: [{seed: [1]}, {seed: [1]}]\n")
+        )
+    with pytest.raises(ConfigError, match=r"axes\[1\]\.colour"):
+        load_spec(
+            _write(tmp_path, "base: {pipeline: bracket-mc}\naxes: [{seed: [1]}, {colour: [2]}]\n")
+        )
