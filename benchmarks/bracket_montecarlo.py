@@ -9,6 +9,13 @@ loosely coupled), and CPU time per frame.
 Run from the repository root:
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/bracket_montecarlo.py [--runs 100] [--smooth-runs 20]
+
+or take the runs from the campaign benchmarks/campaigns/bracket_montecarlo.yaml (one run per
+cell, `satpose.tools.bracket_montecarlo.run_once`, the same code as here):
+
+    satpose campaign benchmarks/campaigns/bracket_montecarlo.yaml --out runs/campaigns/bracket-mc
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bracket_montecarlo.py --runs 100 --smooth-runs 10 \
+        --from-campaign runs/campaigns/bracket-mc
 """
 
 from __future__ import annotations
@@ -217,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         type=Path,
         metavar="DIR",
         help="take the runs (seeds 1000 + k) from a campaign's results.parquet "
-        "(benchmarks/campaigns/bracket_montecarlo*.yaml) instead of running them here",
+        "(benchmarks/campaigns/bracket_montecarlo.yaml) instead of running them here",
     )
     args = ap.parse_args(argv)
     campaign = None
