@@ -34,6 +34,7 @@ import logging
 import math
 import shutil
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -174,6 +175,7 @@ def run_bracket(
     angular_noise: float = 1e-5,
     linear_noise: float = 2e-4,
     require_pose: bool = True,
+    progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Run the bracket method on a mono (or stereo: left image only) sequence; see the module
     docstring for the files. Returns a summary (frames with a pose, RMS errors if truth).
@@ -184,7 +186,9 @@ def run_bracket(
     indeterminate at the first twist (seen on `bracket-final`).
 
     A sequence without any pose is an error unless ``require_pose`` is False (benchmarks:
-    then the trajectories are empty and points.csv holds every frame's reason)."""
+    then the trajectories are empty and points.csv holds every frame's reason).
+    ``progress(done, total)`` is called after each frame (it may stop the run by raising:
+    the output folder is then not written)."""
     seq = load_sequence(sequence_path)
     check_out(out, overwrite, error=BracketRunError)
     geo, fraction = bracket_from_target(seq, side)
@@ -292,6 +296,8 @@ def run_bracket(
                 frames.append(FrameMeasurements(frame=fr.index, t_s=fr.t_s, failures=(why,)))
                 rows.append([fr.index, fr.t_s, *[math.nan] * 8, math.nan, why])
             bad.note(fr.index, frames[-1].failures, (fr.left_path,))
+            if progress is not None:
+                progress(k + 1, len(seq.frames))
         with open(stage / "points.csv", "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(POINT_COLUMNS)
