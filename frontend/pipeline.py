@@ -64,6 +64,7 @@ from satpose.frontend.rim import (
     projected_observation,
 )
 from satpose.frontend.ring import Detector, RingConfig, RingTracker
+from satpose.frontend.ring_outline import OutlineConfig, OutlineFit, fit_ring_outline
 from satpose.frontend.stereo import (
     Circle3D,
     GeometryFailure,
@@ -135,6 +136,7 @@ class FrontendConfig:
     ring: RingConfig = field(default_factory=RingConfig)
     stereo_ring: StereoRingConfig = field(default_factory=StereoRingConfig)
     rim: RimFitConfig = field(default_factory=RimFitConfig)
+    outline: OutlineConfig = field(default_factory=OutlineConfig)
     corners: CornerConfig = field(default_factory=CornerConfig)
     components: ComponentConfig = field(default_factory=ComponentConfig)
     use_components: bool = True
@@ -412,6 +414,8 @@ class StereoFrontend:
                 tracker.reset()
             obs = {cam: opts[0][0] for cam, opts in options.items() if opts}
         else:
+            if self.config.outline.enabled:
+                circles, chosen = self._ring_outline(circles, chosen, failures)
             if self.config.rim.enabled:
                 circles, chosen = self._outer_rim(circles, imgs, chosen, failures)
             for cam, (o, pol) in chosen.items():
@@ -428,6 +432,46 @@ class StereoFrontend:
     def _radius_prior(self) -> tuple[float, float] | None:
         known = self.config.stereo_ring.known_ring
         return None if known is None else (known.outer_radius_m, known.radius_sigma_m)
+
+    def _ring_outline(
+        self,
+        circles: list[Circle3D],
+        chosen: dict[str, tuple[EllipseObservation, int]],
+        failures: list[str],
+    ) -> tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]:
+        """Each candidate circle refitted as the front rim of a cylinder whose outline the
+        ring's edge points follow (`satpose.frontend.ring_outline`). The ellipses become the
+        rim's images with the edge points on the outline's rim arcs. A candidate whose fit
+        fails keeps its circle, and the frame says so."""
+        cfg = self.config
+        pts = (chosen["left"][0].edge_points_px, chosen["right"][0].edge_points_px)
+        fits: list[tuple[float, Circle3D, OutlineFit]] = []
+        reasons = []
+        for circ in circles:
+            try:
+                fit = fit_ring_outline(
+                    self.rig, circ, pts[0], pts[1], cfg.outline, radius_prior=self._radius_prior()
+                )
+            except (GeometryFailure, ConicError, np.linalg.LinAlgError) as exc:
+                reasons.append(str(exc))
+                continue
+            fits.append((fit.cost, _inflate(fit.circle, cfg.stereo_ring, self.rig), fit))
+        if not fits:
+            failures.append(f"ring: {reasons[0]}; the all-edges circle was kept")
+            return circles, chosen
+        fits.sort(key=lambda x: x[0])
+        best = fits[0][2]
+        new_chosen = {}
+        for k, cam in enumerate(("left", "right")):
+            points = best.rim_points[k] if len(best.rim_points[k]) >= 6 else pts[k]
+            try:
+                o = projected_observation(
+                    self.rig, fits[0][1], Camera(cam), points, best.rms_px, chosen[cam][0].source
+                )
+            except GeometryFailure:
+                return circles, chosen
+            new_chosen[cam] = (o, chosen[cam][1])
+        return [c for _, c, _ in fits], new_chosen
 
     def _outer_rim(
         self,
