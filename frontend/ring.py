@@ -44,6 +44,7 @@ from satpose.frontend.edges import (
 )
 from satpose.frontend.measurements import Camera, EllipseObservation
 from satpose.frontend.preprocess import PreparedImage
+from satpose.frontend.ring_bands import BandSeedConfig, band_seeds
 
 
 class EllipseCandidate(Protocol):
@@ -93,6 +94,8 @@ class RingConfig:
             arcs of its inner and outer edges (6 px apart at 7 m) into one ellipse that fits
             neither, and which arcs it mixes changes with the last bits of the image.
         outer_search_coverage: fraction of the ``edge_points`` normals such a fit must keep.
+        bands: seeds from thin dark or bright bands when the detector gives no candidate
+            (`satpose.frontend.ring_bands`).
     """
 
     track_points: int = 16
@@ -119,6 +122,7 @@ class RingConfig:
     )
     outer_search_scales: tuple[float, ...] = (1.0, 1.06, 1.13, 1.21, 1.3, 1.4, 1.5)
     outer_search_coverage: float = 0.7
+    bands: BandSeedConfig = field(default_factory=BandSeedConfig)
 
 
 @dataclass
@@ -297,26 +301,55 @@ class RingTracker:
         image_s = smoothed(image.gray, cfg.edges)
         out: list[tuple[EllipseObservation, int]] = []
         for e, pol in self._plausible(image, None, image_s, None):
-            # the whole-image pass can miss the outer edge of a small ring next to the inner
-            # one, or mix arcs of both into one ellipse; a larger concentric detection and a
-            # search around each candidate both find it (as `follow` does later). Both are
-            # kept: a mixed detection refined on edges can pass as the larger one.
-            # The search starts from the candidate refined on edges when it can be (a clean
-            # fit of one edge), else from the detection.
-            refined = self._refine(image_s, image.gray, e, pol)
-            for larger in (
-                self._larger_concentric(image, image_s, e),
-                self._outer_by_search(image, image_s, e if refined is None else refined[0]),
-            ):
-                if larger is not None and not _known(larger[0], out):
-                    out.append(larger)
-            if refined is not None:
-                obs = self._observation(refined, "detected")
-                if not _known(obs, out):
-                    out.append((obs, pol))
+            self._add_candidates(image, image_s, e, pol, out)
             if len(out) >= max_candidates:
                 break
+        if not out and cfg.bands.enabled:
+            # no arc-based candidate: a rim seen as a thin band on a busy panel
+            # (`satpose.frontend.ring_bands`); its seeds are refined and verified the same way
+            seeds = band_seeds(
+                image.gray8,
+                lambda g: self.detector(g, None),
+                cfg.min_axis_px,
+                cfg.max_axis_ratio,
+                cfg.bands,
+            )
+            for e in seeds:
+                dom, pol = max((inside_dominance(image_s, e, p), p) for p in (+1, -1))
+                if dom < cfg.min_bright_inside:
+                    continue
+                self._add_candidates(image, image_s, e, pol, out)
+                if len(out) >= max_candidates:
+                    break
         return out[:max_candidates]
+
+    def _add_candidates(
+        self,
+        image: PreparedImage,
+        image_s: np.ndarray,
+        e: Ellipse,
+        pol: int,
+        out: list[tuple[EllipseObservation, int]],
+    ) -> None:
+        """Append to ``out`` what a starting ellipse ``e`` gives: itself refined on edges, the
+        larger concentric detection and the outer edge found by search around it."""
+        # the whole-image pass can miss the outer edge of a small ring next to the inner
+        # one, or mix arcs of both into one ellipse; a larger concentric detection and a
+        # search around each candidate both find it (as `follow` does later). Both are
+        # kept: a mixed detection refined on edges can pass as the larger one.
+        # The search starts from the candidate refined on edges when it can be (a clean
+        # fit of one edge), else from the detection.
+        refined = self._refine(image_s, image.gray, e, pol)
+        for larger in (
+            self._larger_concentric(image, image_s, e),
+            self._outer_by_search(image, image_s, e if refined is None else refined[0]),
+        ):
+            if larger is not None and not _known(larger[0], out):
+                out.append(larger)
+        if refined is not None:
+            obs = self._observation(refined, "detected")
+            if not _known(obs, out):
+                out.append((obs, pol))
 
     def _larger_concentric(
         self,
