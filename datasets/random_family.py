@@ -37,6 +37,7 @@ from satpose.datasets.scenarios import (
     PRESETS,
     LightConfig,
     MotionConfig,
+    RenderConfig,
     RigConfig,
     Scenario,
     SensorConfig,
@@ -475,6 +476,8 @@ def random_draw(seed: int) -> RandomDraw:
         light=light,
         sensor=sensor,
         target=target,
+        # each pixel integrates its distorted footprint (benchmarks/ring_clean_annulus.py)
+        render=RenderConfig(resampling="area"),
     )
     r = target.ring
     rim: RimStyle = "rounded" if r.rim_fillet_m > 0 else "lip" if r.lip_width_m > 0 else "flat"

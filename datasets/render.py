@@ -47,6 +47,9 @@ from satpose.datasets.target import MASK_IDS, geometry
 log = logging.getLogger(__name__)
 
 CANVAS_MARGIN_PX = 3
+AREA_SUPERSAMPLE = 3
+"""Sub-pixels per output pixel and axis of ``render.resampling: area`` (odd: masks take the
+centre sub-pixel)."""
 _CV_FROM_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
@@ -65,9 +68,13 @@ class View:
         name: ``left`` or ``right``.
         camera: the output camera (with distortion), as written to calib.yaml.
         canvas: the undistorted camera Mitsuba renders.
-        sample_rc: (2, H, W) canvas (row, col) coordinates of every output pixel, or None when
+        sample_rc: (2, s H, s W) canvas (row, col) coordinates of every output pixel (``s``:
+            ``supersample``; of every sub-pixel of an s x s grid per output pixel), or None when
             the camera has no distortion (canvas == output).
         cam_from_left: this camera's pose relative to the left camera.
+        supersample: the canvas and the distortion map at this many times the output
+            resolution; each output pixel is the mean of its s x s sub-pixels (1: one sample
+            of the canvas per output pixel).
     """
 
     name: str
@@ -75,10 +82,19 @@ class View:
     canvas: PinholeCamera
     sample_rc: np.ndarray | None
     cam_from_left: Rigid3
+    supersample: int = 1
 
 
-def make_view(name: str, camera: PinholeCamera, cam_from_left: Rigid3) -> View:
-    """Build the canvas and the distortion sampling map of a camera."""
+def make_view(
+    name: str, camera: PinholeCamera, cam_from_left: Rigid3, supersample: int = 1
+) -> View:
+    """Build the canvas and the distortion sampling map of a camera.
+
+    With ``supersample = s > 1`` (and distortion) the canvas is ``s`` times finer and the map
+    gives the canvas position of every sub-pixel centre of an ``s x s`` grid per output
+    pixel: output pixel ``u`` covers ``[u - 1/2, u + 1/2]``, its sub-pixel ``k`` is centred
+    at ``u + (k + 1/2) / s - 1/2``; canvas pixel ``U`` of the finer canvas is centred at
+    ``(U + 1/2) / s - 1/2`` of the coarse one."""
     if abs(camera.fx - camera.fy) > 1e-9 * camera.fx or camera.K[0, 1] != 0.0:
         raise RenderError(
             f"the renderer needs square pixels and zero skew; camera {name} has "
@@ -88,9 +104,15 @@ def make_view(name: str, camera: PinholeCamera, cam_from_left: Rigid3) -> View:
         return View(
             name=name, camera=camera, canvas=camera, sample_rc=None, cam_from_left=cam_from_left
         )
+    if supersample < 1:
+        raise RenderError(f"supersample must be >= 1, got {supersample}")
+    s = supersample
     f = camera.fx
-    vv, uu = np.mgrid[0 : camera.height, 0 : camera.width]
-    xy = camera.undistort_points(np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float))
+    sub = (np.arange(s) + 0.5) / s - 0.5  # sub-pixel centres within a pixel
+    vv = (np.arange(camera.height)[:, None] + sub[None, :]).ravel()
+    uu = (np.arange(camera.width)[:, None] + sub[None, :]).ravel()
+    V, U = np.meshgrid(vv, uu, indexing="ij")
+    xy = camera.undistort_points(np.stack([U.ravel(), V.ravel()], axis=1))
     if not np.all(np.isfinite(xy)):
         raise RenderError(f"camera {name}: distortion cannot be inverted over the image")
     u_ideal = f * xy[:, 0]
@@ -99,16 +121,28 @@ def make_view(name: str, camera: PinholeCamera, cam_from_left: Rigid3) -> View:
     cy = -math.floor(v_ideal.min()) + CANVAS_MARGIN_PX
     width = math.ceil(u_ideal.max() + cx) + CANVAS_MARGIN_PX + 1
     height = math.ceil(v_ideal.max() + cy) + CANVAS_MARGIN_PX + 1
+    # the finer canvas: coarse position x is fine position s * (x + 1/2) - 1/2
     canvas = PinholeCamera(
-        width=width, height=height, K=np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
+        width=s * width,
+        height=s * height,
+        K=np.array(
+            [[s * f, 0, s * (cx + 0.5) - 0.5], [0, s * f, s * (cy + 0.5) - 0.5], [0, 0, 1.0]]
+        ),
     )
     rc = np.stack(
         [
-            (v_ideal + cy).reshape(camera.height, camera.width),
-            (u_ideal + cx).reshape(camera.height, camera.width),
+            (s * (v_ideal + cy + 0.5) - 0.5).reshape(V.shape),
+            (s * (u_ideal + cx + 0.5) - 0.5).reshape(U.shape),
         ]
     )
-    return View(name=name, camera=camera, canvas=canvas, sample_rc=rc, cam_from_left=cam_from_left)
+    return View(
+        name=name,
+        camera=camera,
+        canvas=canvas,
+        sample_rc=rc,
+        cam_from_left=cam_from_left,
+        supersample=s,
+    )
 
 
 def sensor_dict(
@@ -137,11 +171,16 @@ def sensor_dict(
     }
 
 
-def distort(view: View, canvas_image: np.ndarray, nearest: bool = False) -> np.ndarray:
-    """Resample a canvas image (H', W'[, C]) into the distorted output image (H, W[, C])."""
+def distort(
+    view: View, canvas_image: np.ndarray, nearest: bool = False, cubic: bool = False
+) -> np.ndarray:
+    """Resample a canvas image (H', W'[, C]) into the distorted output image (H, W[, C]):
+    nearest neighbour (ids), bilinear, or cubic spline (``cubic``; clipped at 0, since the
+    spline overshoots next to an edge)."""
     if view.sample_rc is None:
         return canvas_image
-    order = 0 if nearest else 1
+    order = 0 if nearest else (3 if cubic else 1)
+    s = view.supersample
     img = canvas_image if canvas_image.ndim == 3 else canvas_image[..., None]
     out = np.stack(
         [
@@ -152,6 +191,14 @@ def distort(view: View, canvas_image: np.ndarray, nearest: bool = False) -> np.n
         ],
         axis=-1,
     )
+    if order == 3:
+        out = np.maximum(out, 0.0)
+    if s > 1:
+        H, W = view.camera.height, view.camera.width
+        if nearest:  # ids: the sub-pixel nearest the pixel's centre
+            out = out[s // 2 :: s, s // 2 :: s]
+        else:  # the pixel's area: the mean of its sub-pixels
+            out = out.reshape(H, s, W, s, -1).mean(axis=(1, 3))
     return out if canvas_image.ndim == 3 else out[..., 0]
 
 
@@ -191,9 +238,10 @@ class StereoRenderer:
         mi, self.variant = load_mitsuba(scenario.render.variant)
         self.mi = mi
         calib = scenario.rig.calibration()
-        self.views = [make_view("left", calib.left, Rigid3.identity())]
+        ss = AREA_SUPERSAMPLE if scenario.render.resampling == "area" else 1
+        self.views = [make_view("left", calib.left, Rigid3.identity(), ss)]
         if calib.right is not None and calib.right_from_left is not None:
-            self.views.append(make_view("right", calib.right, calib.right_from_left))
+            self.views.append(make_view("right", calib.right, calib.right_from_left, ss))
         shapes = target_shapes(mi, scenario.target, scenario.seed, emissive=parts)
         all_shapes = {**shapes.shapes, **(extra_shapes or {})}
         rings_cfg = scenario.servicer_rings if parts is None else None
@@ -293,14 +341,15 @@ class StereoRenderer:
         out = {}
         for k, view in enumerate(self.views):
             target_from_cam = target_from_left @ view.cam_from_left.inverse()
-            sensor = self.mi.load_dict(
-                sensor_dict(self.mi, view.canvas, target_from_cam, spp or self.scenario.render.spp)
-            )
+            n = spp or self.scenario.render.spp
+            # the same samples per output pixel, spread over its sub-pixels
+            n = max(1, math.ceil(n / view.supersample**2))
+            sensor = self.mi.load_dict(sensor_dict(self.mi, view.canvas, target_from_cam, n))
             img = np.array(
                 self.mi.render(self.scene, sensor=sensor, seed=self._seed(frame, k, 0)),
                 dtype=np.float32,
             )
-            out[view.name] = distort(view, img)
+            out[view.name] = distort(view, img, cubic=self.scenario.render.resampling == "cubic")
         return out
 
     def masks(self, frame: int, left_cam_from_target: Rigid3) -> dict[str, np.ndarray]:

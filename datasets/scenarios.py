@@ -231,18 +231,32 @@ class RenderConfig:
         variant: ``auto`` (LLVM if available, else scalar), ``llvm_ad_rgb`` or ``scalar_rgb``.
         max_depth: path length (2 = direct light only, 3 = one inter-reflection).
         masks: also render per-pixel object ids into masks/.
+        resampling: how the pinhole canvas is resampled into the distorted image: ``linear``
+            (bilinear, one canvas sample per output pixel, as every sequence before it),
+            ``cubic`` (cubic spline) or ``area`` (a canvas 3x finer, resampled bilinearly at
+            3 x 3 sub-pixels per output pixel and averaged: each pixel integrates its own
+            distorted footprint, as a sensor does; the same samples per pixel in all).
+            Bilinear resampling of a canvas of the output's resolution blurs by an amount
+            that changes with the sub-pixel phase of the distortion map across the image,
+            which a real lens does not (benchmarks/ring_clean_annulus.py measures what that
+            does to the ring).
     """
 
     spp: int = 16
     variant: Literal["auto", "llvm_ad_rgb", "scalar_rgb"] = "auto"
     max_depth: int = 3
     masks: bool = True
+    resampling: Literal["linear", "cubic", "area"] = "linear"
 
     def __post_init__(self) -> None:
         if self.spp < 1:
             raise ConfigError(f"render.spp must be >= 1, got {self.spp}")
         if self.max_depth < 2:
             raise ConfigError("render.max_depth must be >= 2 (direct light)")
+        if self.resampling not in ("linear", "cubic", "area"):
+            raise ConfigError(
+                f"render.resampling must be linear, cubic or area, got {self.resampling!r}"
+            )
 
 
 @dataclass(frozen=True, kw_only=True)

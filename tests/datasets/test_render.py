@@ -35,10 +35,14 @@ def _pose_at_4m(s: Scenario) -> Rigid3:
     return trajectory(scaled(s, frames=61)).left_cam_from_target[60]
 
 
-def test_truth_projects_onto_rendered_markers() -> None:
+@pytest.mark.parametrize("resampling", ["linear", "area"])
+def test_truth_projects_onto_rendered_markers(resampling: str) -> None:
     """Ring centre, ring rim, panel corners and components, projected with calib + truth
-    (distortion on, both cameras), land on emissive markers rendered at those points."""
+    (distortion on, both cameras), land on emissive markers rendered at those points; with
+    the canvas resampled once per pixel (``linear``) and over 3 x 3 sub-pixels per pixel of
+    a 3x finer canvas (``area``, whose sub-pixel geometry this checks)."""
     s = _small("paper-docking")
+    s = replace(s, render=replace(s.render, resampling=resampling))
     errors = marker_errors(s, _pose_at_4m(s), spp=TRUTH_SPP)
     assert set(errors) == {"left", "right"}
     for cam, groups in errors.items():
