@@ -12,6 +12,9 @@ filter) with the configurations below and scores them with `satpose eval`:
 - ``default``: `satpose run` as it is.
 - ``disparity bias 0.2 px``: the backend carries the ring edges' common disparity error as one
   variable (``ring_disparity_bias_px``).
+- ``outline``: the ring's edges fitted as the outline of a cylinder, front rim and base with
+  the wall height free (``outline.enabled``, `satpose.frontend.ring_outline`); with the
+  disparity-bias variable too.
 - ``rim only``: the frontend's rim-only refit (``rim.enabled``).
 - both.
 
@@ -83,8 +86,15 @@ def _rim(c: PipelineConfig) -> PipelineConfig:
     return replace(c, frontend=replace(c.frontend, rim=replace(c.frontend.rim, enabled=True)))
 
 
+def _outline(c: PipelineConfig) -> PipelineConfig:
+    o = replace(c.frontend.outline, enabled=True)
+    return replace(c, frontend=replace(c.frontend, outline=o))
+
+
 CONFIGS = {
     "default": lambda c: c,
+    "outline": _outline,
+    "outline + disparity bias 0.2 px": lambda c: _bias(_outline(c), 0.2),
     "disparity bias 0.2 px": lambda c: _bias(c, 0.2),
     "rim only": _rim,
     "rim only + disparity bias 0.2 px": lambda c: _bias(_rim(c), 0.2),
