@@ -26,7 +26,8 @@ from satpose.datasets.config import replace_nested
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import preset
 
-APPROACH = {"frames": 30, "motion": {"velocity_m_s": [0.0, 0.0, -4.0 / 150.0]}}
+FRAMES = 30
+APPROACH = {"frames": FRAMES, "motion": {"velocity_m_s": [0.0, 0.0, -4.0 / 150.0]}}
 """7 m to 3 m in 30 frames at 0.2 Hz (the spin stays 10 deg per frame)."""
 
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -61,11 +62,18 @@ VARIANTS: dict[str, dict[str, Any]] = {
 }
 
 
-def render_variant(name: str, overrides: dict[str, Any], root: Path) -> Path:
+def variant_scenario(name: str, overrides: dict[str, Any], frames: int = FRAMES) -> Any:
+    """`paper-docking` with the variant's ``overrides``, the first ``frames`` of the 7 m to
+    3 m approach (the speed of the 30-frame approach; fewer frames end farther out)."""
+    approach = {**APPROACH, "frames": frames}
+    return replace_nested(preset("paper-docking"), {**approach, **overrides, "name": name})
+
+
+def render_variant(name: str, overrides: dict[str, Any], root: Path, frames: int = FRAMES) -> Path:
     out = root / name
     if (out / "frames.csv").is_file():
         return out
-    scenario = replace_nested(preset("paper-docking"), {**APPROACH, **overrides, "name": name})
+    scenario = variant_scenario(name, overrides, frames)
     print(f"rendering {name} into {out}", flush=True)
     render_sequence(scenario, out, overwrite=True)
     return out
@@ -75,6 +83,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--from-campaign", type=Path, metavar="DIR", help="a campaign folder")
     ap.add_argument("--out", default="docs/results/frontend_variations.md")
+    ap.add_argument(
+        "--frames",
+        type=int,
+        default=FRAMES,
+        help="frames of each variant (default 30: 7 m to 3 m; fewer for a quick check, as "
+        "benchmarks/campaign_tables.py does)",
+    )
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=Path("runs/bench/variants"),
+        help="where the variants are rendered (a folder per frame count other than 30)",
+    )
     args = ap.parse_args()
     cmd = [sys.executable, str(Path(__file__).with_name("frontend.py")), "--out", args.out]
     cmd += ["--title", "Stereo frontend (seed 000) on held-out variants"]
@@ -87,8 +108,8 @@ def main() -> None:
         ]
         subprocess.run(cmd, check=True)
         return
-    root = Path("runs/bench/variants")
-    paths = [render_variant(n, o, root) for n, o in VARIANTS.items()]
+    root = args.data if args.frames == FRAMES else args.data / f"frames-{args.frames}"
+    paths = [render_variant(n, o, root, args.frames) for n, o in VARIANTS.items()]
     cmd += ["--generated-by", "python benchmarks/frontend_variations.py"]
     subprocess.run([*cmd, *map(str, paths)], check=True)
 

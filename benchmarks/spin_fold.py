@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from collections import Counter
 from dataclasses import dataclass, replace
@@ -205,11 +206,16 @@ def configs(target: str, rate: float) -> list[tuple[str, RateConfig]]:
     return out
 
 
-def rows_from_campaign(folder: Path) -> tuple[list[tuple[str, float, str, Stats]], float]:
+def rows_from_campaign(
+    folder: Path, rates: tuple[float, ...] = RATES_DEG_S
+) -> tuple[list[tuple[str, float, str, Stats]], float]:
     """This benchmark's rows from a campaign's results.parquet (benchmarks/campaigns/
     spin_fold.yaml: axes ``perturb.target``, ``perturb.rate`` and ``config`` labelled as the
-    table's target, rate and n), in the table's order; the rows the benchmark does not score
-    (`configs`) and the cells not ok are left out. Also the campaign's render + run minutes."""
+    table's target, rate and n) for ``rates`` [deg/s], in the table's order; the rows the
+    benchmark does not score (`configs`) and the cells not ok are left out. Also the
+    campaign's render + run minutes."""
+    import pandas as pd
+
     from satpose.tools.campaign import read_results
     from satpose.tools.spin_score import stats_from_columns
 
@@ -223,11 +229,13 @@ def rows_from_campaign(folder: Path) -> tuple[list[tuple[str, float, str, Stats]
     }
     rows = []
     for target in TARGETS:
-        for rate in RATES_DEG_S:
+        for rate in rates:
             for label, _ in configs(target, rate):
                 if (target, rate, label) in found:
                     rows.append((target, rate, label, found[(target, rate, label)]))
-    minutes = float(df["render_s"].fillna(0).sum() + df["run_s"].fillna(0).sum()) / 60.0
+    # a render's time is on every cell that shares it: count it once
+    renders = df.drop_duplicates("sequence_path")["render_s"] if "sequence_path" in df else []
+    minutes = float(pd.Series(renders).fillna(0).sum() + df["run_s"].fillna(0).sum()) / 60.0
     return rows, minutes
 
 
@@ -242,16 +250,26 @@ def main() -> None:
         help="build the page from a campaign's results.parquet (benchmarks/campaigns/"
         "spin_fold.yaml) instead of rendering and measuring here",
     )
+    ap.add_argument(
+        "--rates",
+        type=float,
+        nargs="+",
+        default=list(RATES_DEG_S),
+        metavar="DEG_S",
+        help="the spin rates of the table (default: all ten; fewer for a quick check, as "
+        "benchmarks/campaign_tables.py does)",
+    )
     args = ap.parse_args()
+    rates = tuple(args.rates)
     if args.from_campaign is not None:
-        rows, minutes = rows_from_campaign(args.from_campaign)
-        cmd = f"python benchmarks/spin_fold.py --from-campaign {args.from_campaign}"
+        rows, minutes = rows_from_campaign(args.from_campaign, rates)
+        cmd = "python benchmarks/spin_fold.py " + " ".join(sys.argv[1:])
         write_page(args.out, markdown(rows, minutes, cmd))
         return
     t0 = time.perf_counter()
     rows = []
     for target in TARGETS:
-        for rate in RATES_DEG_S:
+        for rate in rates:
             sc = scenario(target, rate)
             path = args.data / f"spin-fold-{FRAMES}" / sc.name
             if not (path / "frames.csv").is_file():
@@ -262,7 +280,8 @@ def main() -> None:
                 st = evaluate(fr, cfg)
                 print(target, rate, label, dict(st.status), f"bias {st.bias:+.4f}", flush=True)
                 rows.append((target, rate, label, st))
-    write_page(args.out, markdown(rows, (time.perf_counter() - t0) / 60.0))
+    cmd = "python benchmarks/spin_fold.py " + " ".join(sys.argv[1:])
+    write_page(args.out, markdown(rows, (time.perf_counter() - t0) / 60.0, cmd.strip()))
 
 
 if __name__ == "__main__":
