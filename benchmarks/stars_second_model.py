@@ -111,6 +111,7 @@ def main() -> int:
     )
     args = ap.parse_args()
     t0 = time.process_time()
+    load0 = " ".join(Path("/proc/loadavg").read_text().split()[:3])
     rows: list[dict[str, object]] = []
     with tempfile.TemporaryDirectory() as tmp:
         root = args.work or Path(tmp)
@@ -143,7 +144,10 @@ def main() -> int:
             if len(RENDERED) == len(CASES)
             else f" ({len(CASES) - len(RENDERED)} of {len(CASES)} recordings reused from "
             "--work: their rendering not included)."
-        ),
+        )
+        + f" Load average (1/5/15 min) at the start {load0}, at the end "
+        + " ".join(Path("/proc/loadavg").read_text().split()[:3])
+        + " (2 cores): the CPU columns are CPU time, but a loaded machine inflates them.",
         "",
         *table(rows),
         "",

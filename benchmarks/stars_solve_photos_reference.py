@@ -20,12 +20,15 @@ depend on either: run this under the cedar-solve venv, with astrometry.net insta
     python3 -m venv /work/cedar-venv && /work/cedar-venv/bin/pip install 'numpy<2' \\
         cedar-solve==0.5.1
     /work/cedar-venv/bin/python benchmarks/stars_solve_photos_reference.py --data DATA \\
-        --out tests/data/sky_photos/reference.csv
+        --out tests/data/sky_photos/reference.csv [--sources S... --keep]
+
+(``--sources`` with ``--keep``: run those sources' images and keep the file's other rows.)
 
 ``DATA`` holds one folder per source (docs/stars.md, "Other cameras"). Columns: ``source``,
-``file``, ``solver`` (``astrometry.net`` or ``cedar-solve``), ``status`` (``solved`` or
-``no_solution``), ``ra_deg``, ``dec_deg`` (image centre), ``roll_deg`` (satpose's convention:
-position angle of image-down at the centre, north through east; cedar's ``180 - Roll``),
+``file``, ``solver`` (``astrometry.net`` or ``cedar-solve``), ``status`` (``solved``,
+``no_solution``, or ``not_run`` when the solver could not read the file), ``ra_deg``,
+``dec_deg`` (image centre), ``roll_deg`` (satpose's convention: position angle of
+image-down at the centre, north through east; cedar's ``180 - Roll``),
 ``fov_deg`` (horizontal, edge to edge of the middle row), ``matches``, ``detail``.
 """
 
@@ -156,7 +159,11 @@ def solve_cedar(t3: object, image: Path, fov_deg: float | None) -> dict[str, obj
 
     with Image.open(image) as img:
         kw = {"fov_estimate": fov_deg, "fov_max_error": 0.15 * fov_deg} if fov_deg else {}
-        r = t3.solve_from_image(img.convert("L"), **kw)  # type: ignore[attr-defined]
+        try:
+            gray = img.convert("L")
+        except OSError as exc:  # e.g. a compressed TIFF without Pillow's libtiff
+            return {"status": "not_run", "detail": f"Pillow cannot decode it: {exc}"}
+        r = t3.solve_from_image(gray, **kw)  # type: ignore[attr-defined]
     if r.get("RA") is None:
         return {"status": "no_solution", "detail": str(r.get("status", "no match"))}
     return {
@@ -189,8 +196,12 @@ def write(args: argparse.Namespace, rows: list[dict[str, str]], anet: str, props
             "solve_from_image(gray, fov_estimate=fov_deg, fov_max_error=0.15 fov_deg) or no "
             "estimate\n"
             "# command: python benchmarks/stars_solve_photos_reference.py --data DATA --out "
-            f"{args.out}; written {datetime.date.today().isoformat()}\n"
-            "# roll_deg: position angle of image-down at the centre, north through east "
+            f"{args.out}"
+            + (f" --sources {' '.join(args.sources)}" if args.sources else "")
+            + (" --keep" if args.keep else "")
+            + f"; written {datetime.date.today().isoformat()}\n"
+            + "".join(f"# earlier: {line}\n" for line in args.earlier)
+            + "# roll_deg: position angle of image-down at the centre, north through east "
             "(satpose; cedar: 180 - Roll)\n"
         )
         w = csv.DictWriter(fh, fieldnames=cols)
@@ -208,6 +219,12 @@ def main() -> None:
     ap.add_argument(
         "--no-star-cpulimit", type=int, default=10, help="solve-field CPU seconds, no-star"
     )
+    ap.add_argument("--sources", nargs="*", help="only these sources (default: all)")
+    ap.add_argument(
+        "--keep",
+        action="store_true",
+        help="keep --out's rows of the images not run now (a run of some --sources only)",
+    )
     args = ap.parse_args()
 
     import tetra3  # cedar-solve's module name
@@ -216,9 +233,23 @@ def main() -> None:
     t3 = tetra3.Tetra3()
     props = t3.database_properties
     anet = subprocess.run(["solve-field", "--version"], capture_output=True, text=True)
+    items = [i for i in read_images(args.images) if not args.sources or i["source"] in args.sources]
+    run_now = {(i["source"], i["file"]) for i in items}
     rows = []
-    for item in read_images(args.images):
+    args.earlier = []  # the kept rows' own command lines
+    if args.keep and args.out.is_file():
+        for line in args.out.read_text(encoding="utf-8").splitlines():
+            for tag in ("# command: ", "# earlier: "):
+                if line.startswith(tag):
+                    args.earlier.append(line[len(tag) :])
+        with args.out.open(encoding="utf-8") as fh:
+            old = csv.DictReader(line for line in fh if not line.startswith("#"))
+            rows = [r for r in old if (r["source"], r["file"]) not in run_now]
+    for item in items:
         path = args.data / item["source"] / item["file"]
+        if not path.is_file():
+            print(f"{path}: missing, not run", file=sys.stderr)
+            continue
         with Image.open(path) as img:
             width, height = img.size
         fov = float(item["fov_deg"]) if item["fov_deg"] else None
@@ -236,6 +267,8 @@ def main() -> None:
             rows.append(row)
             print(f"{item['source']}/{item['file']} {solver}: {row['status']}", file=sys.stderr)
         write(args, rows, anet.stdout.strip(), props)
+    order = {(i["source"], i["file"]): k for k, i in enumerate(read_images(args.images))}
+    rows.sort(key=lambda r: (order.get((r["source"], r["file"]), len(order)), r["solver"]))
     write(args, rows, anet.stdout.strip(), props)
     solved = sum(r["status"] == "solved" for r in rows)
     print(f"{solved}/{len(rows)} solver runs solved; wrote {args.out}")

@@ -17,10 +17,10 @@ within a range, to ``inertial_from_camera`` with its covariance:
    attitude covariance is the rotation block of ``(J^T W J)^-1`` (right perturbation,
    camera frame), scaled by the reduced chi-square when that exceeds 1.
 4. **Verification**: every catalogue star the solution predicts in the image is looked for;
-   the solution is kept only if enough are found where the spots' density makes a chance
-   match improbable (binomial false-alarm probability), the residuals are small and brighter
-   catalogue stars are brighter spots (rank correlation). Matches found here join the
-   refinement, which is repeated.
+   the solution is kept only if enough are found, beyond the identifying pattern's, where
+   the spots' local density makes a chance match improbable (`_false_alarm`), the
+   residuals are small and brighter catalogue stars are brighter spots (rank
+   correlation). Matches found here join the refinement, which is repeated.
 
 Camera frame OpenCV (x right, y down, z along the boresight), principal point at the image
 centre ``((W-1)/2, (H-1)/2)`` (pixel (0, 0) is the centre of the top-left pixel), square
@@ -35,10 +35,11 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
-from scipy.stats import binom, spearmanr
+from scipy.stats import spearmanr
 
 from satpose.datasets.geometry import rotvec_to_matrix
 from satpose.frontend.stars import (
@@ -113,6 +114,9 @@ class ImageStars:
         width, height: image size [px].
         noise: median background noise sigma [image units].
         hot_pixels: number of hot pixels replaced.
+        texture: the largest block noise around each spot (its 32x32 block and the 8
+            neighbours) over ``noise`` (N,): about 1 on a clear sky, several times that on
+            or next to a textured foreground (`StarSolveConfig.foreground_texture`).
     """
 
     px: np.ndarray
@@ -124,6 +128,7 @@ class ImageStars:
     height: int
     noise: float
     hot_pixels: int
+    texture: np.ndarray
 
     def __len__(self) -> int:
         return int(self.px.shape[0])
@@ -142,11 +147,11 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 def _block_stats(
     img: np.ndarray, block: int, stride: int, zero_median: bool = False
-) -> tuple[np.ndarray, np.ndarray, float]:
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Per ``block`` x ``block`` block, from every ``stride``-th pixel of every
     ``stride``-th row: the median and the MAD sigma (1.4826 MAD; about 0 when
-    ``zero_median``), each interpolated to full size (bilinear), and the median of the
-    blocks' sigmas."""
+    ``zero_median``), each interpolated to full size (bilinear), the median of the
+    blocks' sigmas, and the blocks' own sigmas (before the 3x3 median over blocks)."""
     h, w = img.shape
     nby, nbx = -(-h // block), -(-w // block)
     per = block // stride
@@ -161,6 +166,7 @@ def _block_stats(
     else:
         med = np.median(cells, axis=2).astype(np.float32)
         mad = (1.4826 * np.median(np.abs(cells - med[:, :, None]), axis=2)).astype(np.float32)
+    own = mad
     # A 3x3 median over blocks removes blocks dominated by a bright star or a small object.
     if nby >= 3 and nbx >= 3:
         med = cv2.medianBlur(med, 3)
@@ -168,7 +174,7 @@ def _block_stats(
     size = (nbx * block, nby * block)
     sig = cv2.resize(mad, size, interpolation=cv2.INTER_LINEAR)[:h, :w]
     bg = med if zero_median else cv2.resize(med, size, interpolation=cv2.INTER_LINEAR)[:h, :w]
-    return bg, sig, float(np.median(mad))
+    return bg, sig, float(np.median(mad)), own
 
 
 def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None) -> ImageStars:
@@ -194,7 +200,7 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
     h, w = img.shape
     sat = img >= sat_level if sat_level is not None else np.zeros(img.shape, bool)
 
-    bg, noise, noise_med = _block_stats(img, c.block_px, 2)
+    bg, noise, noise_med, block_noise = _block_stats(img, c.block_px, 2)
     # An integer image resolves no noise below one count: a zero MAD means a quantised or
     # clipped background (8-bit JPEGs with a black sky), not a noiseless one; without this
     # floor every isolated count of 1 would be a detection or a hot pixel.
@@ -217,7 +223,7 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
     # several pixels and survives the filter.
     s = c.filter_sigma_px
     filt = cv2.GaussianBlur(sig, (0, 0), s)
-    _, filt_noise, filt_med = _block_stats(filt, c.block_px, 4, zero_median=True)
+    _, filt_noise, filt_med, _ = _block_stats(filt, c.block_px, 4, zero_median=True)
     # White noise of sigma n has sigma n / (2 sqrt(pi) s) after the Gaussian of sigma s.
     filt_noise = np.maximum(filt_noise, max(0.5 * filt_med, floor / (2 * math.sqrt(math.pi) * s)))
     mask = ((filt > c.k_sigma * filt_noise) | sat).astype(np.uint8)
@@ -279,6 +285,14 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
     # and the pattern search needs the catalogue's brightness order (a dense JPEG field
     # with a comet was not identified).
     order = np.lexsort((-f / loc_noise[idx], -(nsat[idx] * saturated)))[: c.max_stars]
+    # Texture next to each spot: the largest own noise of its block and the 8 around it
+    # (before the median over blocks, which lets a sky block next to foliage or a roof
+    # keep the sky's noise) over the image's median noise. A star on a clear sky is near
+    # 1; a spot on or along a lit foreground (leaves, a roof's edge) is several times that.
+    near = cv2.dilate(block_noise, np.ones((3, 3), np.uint8))
+    bi = np.clip((cy // c.block_px).astype(np.int64), 0, near.shape[0] - 1)
+    bj = np.clip((cx // c.block_px).astype(np.int64), 0, near.shape[1] - 1)
+    texture = near[bi, bj] / max(noise_med, floor)
     return ImageStars(
         px=np.column_stack([cx, cy])[order],
         flux=f[order],
@@ -289,12 +303,13 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
         height=h,
         noise=noise_med,
         hot_pixels=n_hot,
+        texture=texture[order],
     )
 
 
 def _empty(w: int, h: int, noise: float, hot: int) -> ImageStars:
     z = np.zeros(0)
-    return ImageStars(np.zeros((0, 2)), z, z, np.zeros(0, bool), z, w, h, noise, hot)
+    return ImageStars(np.zeros((0, 2)), z, z, np.zeros(0, bool), z, w, h, noise, hot, z)
 
 
 # --------------------------------------------------------------------------------------------
@@ -498,10 +513,14 @@ class StarSolveConfig:
             pixels of it (or 3 sigma of the spot, the larger).
         min_matches: fewest verified matches for a solution.
         max_false_alarm: largest probability that the verified matches are chance
-            coincidences of the spots with the predicted stars (binomial, per solution).
+            coincidences of the spots with the predicted stars (`_false_alarm`, per solution).
         max_rmse_px: largest RMS residual of the verified matches [px].
         min_rank_correlation: smallest Spearman correlation between spot flux and catalogue
             brightness over the matches (checked with 10 or more matches).
+        foreground_texture: when the brightness order gives tetra3rs no pattern, it is
+            given a second order with the spots whose `ImageStars.texture` exceeds this
+            last (a textured foreground's spots outranked the stars of a sky above
+            trees); 0: no second search.
         extraction: star extraction settings.
     """
 
@@ -515,6 +534,7 @@ class StarSolveConfig:
     max_false_alarm: float = 1e-9
     max_rmse_px: float = 1.5
     min_rank_correlation: float = 0.2
+    foreground_texture: float = 3.0
     extraction: StarExtractionConfig = field(default_factory=StarExtractionConfig)
 
     def __post_init__(self) -> None:
@@ -527,6 +547,8 @@ class StarSolveConfig:
                 )
         if self.min_matches < 4 or self.identify_stars < 4:
             raise StarTrackerError("min_matches >= 4 and identify_stars >= 4 needed")
+        if self.foreground_texture < 0:
+            raise StarTrackerError("foreground_texture must be >= 0 (0: off)")
         if not (0 < self.max_false_alarm < 1) or self.match_radius_px <= 0:
             raise StarTrackerError("0 < max_false_alarm < 1 and match_radius_px > 0 needed")
 
@@ -547,7 +569,7 @@ class StarSolution:
         rmse_arcsec: RMS residual of the matches, converted at the focal length [arcsec].
         stars: the extracted spots.
         predicted: stars the solution predicts in the image (verification) (K,).
-        false_alarm: binomial probability of the matches by chance.
+        false_alarm: probability of the matches by chance (`_false_alarm`).
         cpu_ms: CPU time of extraction, identification, refinement and checks [ms].
     """
 
@@ -704,27 +726,44 @@ def _solve_band(
     def cpu() -> float:
         return (time.process_time() - t0) * 1e3
 
-    n_id = min(len(stars), c.identify_stars)
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    rank = np.arange(n_id, 0, -1, dtype=float)  # brightness order only (saturated first)
-    cent = np.column_stack([stars.px[:n_id] - centre, rank])
     lo, hi = fov_range
-    res = db.solve_from_centroids(
-        cent,
-        fov_estimate_deg=0.5 * (lo + hi),
-        fov_max_error_deg=0.5 * (hi - lo) + 1e-6,
-        image_width=w,
-        image_height=h,
-        solve_timeout_ms=c.solve_timeout_ms,
-    )
+
+    def identify(order: np.ndarray) -> tuple[Any, np.ndarray]:
+        """tetra3rs on the first ``identify_stars`` spots of ``order``; its result and
+        the spots it was given."""
+        sel = order[: c.identify_stars]
+        rank = np.arange(sel.size, 0, -1, dtype=float)  # brightness order only
+        cent = np.column_stack([stars.px[sel] - centre, rank])
+        res = db.solve_from_centroids(
+            cent,
+            fov_estimate_deg=0.5 * (lo + hi),
+            fov_max_error_deg=0.5 * (hi - lo) + 1e-6,
+            image_width=w,
+            image_height=h,
+            solve_timeout_ms=c.solve_timeout_ms,
+        )
+        return res, sel
+
+    res, sel = identify(np.arange(len(stars)))
+    retried = ""
+    if not res and c.foreground_texture > 0:
+        # Spots on or along a textured foreground (lit leaves, a roof's edge) can outrank
+        # the sky's stars; a second search puts them last (module docstring, step 2).
+        fg = stars.texture > c.foreground_texture
+        if fg[: c.identify_stars].any() and int((~fg).sum()) >= 4:
+            retried = f"; also with the {int(fg.sum())} spots on a textured foreground last"
+            res2, sel2 = identify(np.concatenate([np.flatnonzero(~fg), np.flatnonzero(fg)]))
+            if res2:
+                res, sel = res2, sel2
     if not res:
         status = getattr(res, "status", "no_match")
         return no_solution(
-            f"no star pattern identified (tetra3rs: {status}) among {len(stars)} spots",
+            f"no star pattern identified (tetra3rs: {status}) among {len(stars)} spots" + retried,
             stars,
             cpu(),
         )
-    idx = np.asarray(res.matched_centroids, dtype=np.int64)
+    idx = sel[np.asarray(res.matched_centroids, dtype=np.int64)]
     ids = np.asarray(res.matched_catalog_ids, dtype=np.int64)
     known = np.array([int(i) in cat.row_of for i in ids], dtype=bool)
     idx, ids = idx[known], ids[known]
@@ -756,13 +795,13 @@ def _solve_band(
         )
         pi, sj = pi[ref.inlier], sj[ref.inlier]
     elapsed = cpu()
-    verdict = _verify(c, fov_range, stars, prow, pi, sj, ref.R, ref.camera, cat)
+    verdict = _verify(c, fov_range, stars, prow, ppx, pi, sj, ref.R, ref.camera, cat)
     if verdict:
         return no_solution(f"verification failed: {verdict}", stars, elapsed)
     r = cat.unit[prow[pi]]
     res_px = np.linalg.norm(_residuals(ref.R, ref.camera, r, stars.px[sj]), axis=1)
     rmse_px = float(np.sqrt(np.mean(res_px**2)))
-    fa = _false_alarm(stars, prow.size, pi.size, match_r)
+    fa = _false_alarm(stars, ppx, pi.size, match_r)
     return StarSolution(
         "solved",
         "",
@@ -780,12 +819,54 @@ def _solve_band(
     )
 
 
-def _false_alarm(stars: ImageStars, n_pred: int, m: int, radius: np.ndarray) -> float:
-    """Probability of ``m`` or more of ``n_pred`` predicted stars landing within a match
-    radius of some spot by chance (spots spread uniformly over the image)."""
-    area = float(np.sum(np.pi * radius**2)) / (stars.width * stars.height)
-    p = min(1.0 - math.exp(-area), 1.0)
-    return float(binom.sf(m - 1, n_pred, p)) if m > 0 else 1.0
+PATTERN_STARS = 4
+"""Stars of the identifying pattern (tetra3rs' 4-star patterns): matched by construction,
+so `_false_alarm` does not count them as confirmations (they also fix more than the
+refinement's 5 parameters)."""
+
+
+def _chance_match(stars: ImageStars, pred_px: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Probability that a predicted star at each pixel (K, 2) lands within the match radius
+    of some spot by chance (K,), from the spots' *local* density: the spots' match areas
+    (``pi radius^2``) summed over a window of about a quarter of the image's short side
+    around the star, over the window's area inside the image. Spots cluster on a textured
+    foreground (a tree line, a roof's edge), so an image-wide density would make a match
+    there look more significant than it is (and one on the clear sky less)."""
+    cell = 16
+    gh, gw = -(-stars.height // cell), -(-stars.width // cell)
+    area = np.zeros((gh, gw), np.float64)
+    if len(stars):
+        gi = np.clip((stars.px[:, 1] // cell).astype(np.int64), 0, gh - 1)
+        gj = np.clip((stars.px[:, 0] // cell).astype(np.int64), 0, gw - 1)
+        np.add.at(area, (gi, gj), np.pi * radius**2)
+    k = max(5, round(min(stars.width, stars.height) / 4 / cell) | 1)
+    summed = cv2.boxFilter(area, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    full = np.full((gh, gw), float(cell * cell))
+    inside = cv2.boxFilter(full, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    qi = np.clip((pred_px[:, 1] // cell).astype(np.int64), 0, gh - 1)
+    qj = np.clip((pred_px[:, 0] // cell).astype(np.int64), 0, gw - 1)
+    return np.asarray(1.0 - np.exp(-summed[qi, qj] / inside[qi, qj]))
+
+
+def _false_alarm(stars: ImageStars, pred_px: np.ndarray, m: int, radius: np.ndarray) -> float:
+    """Probability that ``m - PATTERN_STARS`` or more of the predicted stars (pixels
+    (K, 2)) land within a match radius of some spot by chance: the upper tail of the
+    Poisson-binomial distribution of the stars' `_chance_match` probabilities (exact,
+    by the recursion over stars)."""
+    need = m - PATTERN_STARS
+    if need <= 0:
+        return 1.0
+    p = _chance_match(stars, pred_px, radius)
+    # dist[i]: probability of exactly i chance matches so far (i < need); dist[need]:
+    # of need or more.
+    dist = np.zeros(need + 1)
+    dist[0] = 1.0
+    for pj in p:
+        top = dist[need] + dist[need - 1] * pj
+        dist[1:need] = dist[1:need] * (1 - pj) + dist[: need - 1] * pj
+        dist[0] *= 1 - pj
+        dist[need] = top
+    return float(min(dist[need], 1.0))
 
 
 def _verify(
@@ -793,6 +874,7 @@ def _verify(
     fov_range: tuple[float, float],
     stars: ImageStars,
     prow: np.ndarray,
+    ppx: np.ndarray,
     pi: np.ndarray,
     sj: np.ndarray,
     R: np.ndarray,
@@ -804,7 +886,7 @@ def _verify(
     if m < c.min_matches:
         return f"{m} of {prow.size} predicted stars found (need {c.min_matches})"
     match_r = np.maximum(c.match_radius_px, 3 * stars.sigma_px)
-    fa = _false_alarm(stars, int(prow.size), m, match_r)
+    fa = _false_alarm(stars, ppx, m, match_r)
     if fa > c.max_false_alarm:
         return f"{m} of {prow.size} predicted stars found, as likely by chance (p = {fa:.1e})"
     r = cat.unit[prow[pi]]
@@ -845,5 +927,5 @@ def check_attitude(
     cat = solver_catalogue(scales[0], scales[1], c.epoch_yr)
     prow, ppx = _predict(cat, R, camera, float(np.max(cat.mag)))
     pi, sj = _match(ppx, stars.px, np.maximum(c.match_radius_px, 3 * stars.sigma_px))
-    verdict = _verify(c, fov_range, stars, prow, pi, sj, R, camera, cat)
+    verdict = _verify(c, fov_range, stars, prow, ppx, pi, sj, R, camera, cat)
     return verdict, int(pi.size), int(prow.size)

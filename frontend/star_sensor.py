@@ -62,7 +62,9 @@ def pixel_intervals(t_us: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarra
     return np.diff(t_us[order]).astype(float)[same[1:]]
 
 
-def refractory_from_stream(star_dt_us: np.ndarray, hot_dt_us: np.ndarray | None) -> Refractory:
+def refractory_from_stream(
+    star_dt_us: np.ndarray | Callable[[], np.ndarray], hot_dt_us: np.ndarray | None
+) -> Refractory:
     """The dead time from a stream's intervals (`estimate_refractory` on each source).
 
     - **Hot pixels** (`pixel_intervals` of the pixels `star_events.hot_pixels` found): a
@@ -74,12 +76,16 @@ def refractory_from_stream(star_dt_us: np.ndarray, hot_dt_us: np.ndarray | None)
       time only when they reach down to zero (none: 0); otherwise their edge bounds it
       from above (``identified`` false; at 900 px/s on a 1.5 px defocused disk the edge
       was 0.42 ms for a 0.3 ms dead time and 0.13 ms for none).
+
+    ``star_dt_us``: the star passes' intervals [us], or a function giving them (called
+    only when the hot pixels do not show the dead time: forming them costs stream-long
+    arrays).
     """
     if hot_dt_us is not None and np.size(hot_dt_us) >= 200:
         hot = estimate_refractory(hot_dt_us)
         if hot.identified:
             return replace(hot, source="hot pixels")
-    star = estimate_refractory(star_dt_us)
+    star = estimate_refractory(star_dt_us() if callable(star_dt_us) else star_dt_us)
     if star.identified and star.refractory_s == 0:
         return replace(star, source="star passes (intervals reach zero: none)")
     bound = star.refractory_s if not star.identified else star.refractory_s + 2 * star.jitter_s

@@ -395,6 +395,7 @@ def stream_levels_dead_time(
     use: np.ndarray | None = None,
     edge_s: float | None = None,
     hot_intervals_us: np.ndarray | None = None,
+    ladder: bool = True,
 ) -> StreamLevels:
     """`stream_levels` with the pixel's dead time in its levels.
 
@@ -407,7 +408,10 @@ def stream_levels_dead_time(
     run; pixels anchored at their last event keep their anchor. ``refractory_s`` None: the
     dead time is measured first (`star_sensor.refractory_from_stream`: the intervals of the
     hot pixels, ``hot_intervals_us``, else the same-polarity intervals of the events in
-    ``use``) and used if identified, else 0."""
+    ``use``, only if the hot pixels do not show it) and used if identified, else 0.
+    ``ladder`` False: the dead time is measured (``refractory``) but not put into the
+    levels (``dead_time`` None, ``refractory_used_s`` 0): the tracker's default, which
+    skips the ladder's dozen stream-long arrays (about 0.5 ms per output at 6 deg/s)."""
     n_ev = np.asarray(t_s).size
     if n_ev == 0:
         return StreamLevels(np.zeros(0), np.zeros(0, dtype=bool), None, None, 0.0)
@@ -417,23 +421,28 @@ def stream_levels_dead_time(
     levels[s.order] = s.net + offset[s.pix_id]
     peak = np.empty(n_ev, dtype=bool)
     peak[s.order] = _peaks_sorted(s.pix, s.pol)
-    inner = ~s.new_run  # the event's predecessor is in its run
-    dt = np.zeros(n_ev)
-    dt[1:] = np.diff(s.ts)
     found: Refractory | None = None
     tau = refractory_s
     if tau is None:
-        ok = inner.copy()
-        if use is not None:
-            u = np.asarray(use, bool)[s.order]
-            ok[1:] &= u[1:] & u[:-1]
-        iv = dt[ok]
-        if iv.size > REFRACTORY_INTERVALS:  # an even subset: plenty for a 200-bin histogram
-            iv = iv[:: -(-iv.size // REFRACTORY_INTERVALS)]
-        found = refractory_from_stream(np.rint(iv * 1e6), hot_intervals_us)
+
+        def star_intervals_us() -> np.ndarray:
+            # Same-polarity intervals (the event's predecessor in its run, both in
+            # ``use``): an even subset of at most REFRACTORY_INTERVALS, enough for a
+            # 200-bin histogram, picked before the stream-long arrays are formed.
+            inner = np.flatnonzero(~s.new_run)
+            if use is not None:
+                u = np.asarray(use, bool)
+                inner = inner[u[s.order[inner]] & u[s.order[inner - 1]]]
+            inner = inner[:: max(1, -(-inner.size // REFRACTORY_INTERVALS))]
+            return np.rint((s.ts[inner] - s.ts[inner - 1]) * 1e6)
+
+        found = refractory_from_stream(star_intervals_us, hot_intervals_us)
         tau = found.refractory_s if found.identified else 0.0
-    if tau <= 0:
+    if tau <= 0 or not ladder:
         return StreamLevels(levels, peak, None, found, 0.0)
+    inner = ~s.new_run  # the event's predecessor is in its run
+    dt = np.zeros(n_ev)
+    dt[1:] = np.diff(s.ts)
     gain = np.zeros(n_ev)
     gain[inner] = np.minimum(tau / np.maximum(dt[inner] - tau, 1e-12), DEAD_TIME_MAX_GAIN)
     gain[inner & (dt <= tau)] = DEAD_TIME_MAX_GAIN
@@ -1574,7 +1583,14 @@ def run_event_tracker(
             levels = ladder_levels(events.p, passes)
     elif len(events) and (fits or "drop_peak" in (c.event_selection, c.acquisition_selection)):
         sl = stream_levels_dead_time(
-            events.t_s, events.x, events.y, events.p, c.refractory_s, clean, hot_intervals_us=hot_dt
+            events.t_s,
+            events.x,
+            events.y,
+            events.p,
+            c.refractory_s,
+            clean,
+            hot_intervals_us=hot_dt,
+            ladder=fits and c.dead_time_levels,
         )
         tracker.refractory = sl.refractory
         if fits and c.dead_time_levels:

@@ -180,6 +180,37 @@ def test_thresholds_need_a_range_of_magnitudes() -> None:
     )
 
 
+@pytest.mark.parametrize("hot_fraction", [0.005, 0.0])
+def test_stream_levels_measure_dead_time_as_refractory_from_stream(hot_fraction: float) -> None:
+    """Seeded second model (0.3 ms dead time): the tracker's whole-stream step measures the
+    same dead time as `refractory_from_stream` on the hot pixels' and the star passes'
+    intervals (exactly: the same intervals), from the hot pixels when there are some and
+    from the star passes (forming them only then) when not; ``ladder=False`` (the tracker's
+    default) gives the same levels and measurement without the dead-time ladder."""
+    ev, _, _ = _dvs(
+        900.0,
+        0.12,
+        3,
+        refractory_s=3e-4,
+        timestamp_jitter_s=2e-5,
+        hot_fraction=hot_fraction,
+        hot_rate_hz=200.0,
+    )
+    expect = _refractory(ev)
+    flat = ev.y.astype(np.int64) * W + ev.x
+    is_hot = np.isin(flat, hot_pixels(ev, W, H))
+    hot_dt = pixel_intervals(ev.t_us[is_hot], ev.x[is_hot], ev.y[is_hot]) if is_hot.any() else None
+    keep = ~is_hot
+    args = (ev.t_s[keep], ev.x[keep], ev.y[keep], ev.p[keep], None)
+    full = stream_levels_dead_time(*args, hot_intervals_us=hot_dt)
+    lean = stream_levels_dead_time(*args, hot_intervals_us=hot_dt, ladder=False)
+    assert full.refractory == expect and lean.refractory == expect
+    assert (expect.source == "hot pixels") == (hot_fraction > 0)
+    assert lean.dead_time is None and lean.refractory_used_s == 0.0
+    np.testing.assert_array_equal(lean.levels, full.levels)
+    np.testing.assert_array_equal(lean.peak, full.peak)
+
+
 def test_dead_time_levels() -> None:
     """Noise-free: without a dead time the levels are `stream_levels`' and nothing is added;
     with one, an in-run interval dt adds tau / (dt - tau) thresholds (capped), signed like

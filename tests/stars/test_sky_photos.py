@@ -12,12 +12,22 @@ from __future__ import annotations
 
 import csv
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from satpose.frontend.star_images import StarSolveConfig, radec_roll_deg, solve_image
+from satpose.frontend.star_images import (
+    SkyCamera,
+    StarSolveConfig,
+    check_attitude,
+    extract_stars,
+    fov_to_focal,
+    radec_roll_deg,
+    solve_image,
+)
 from satpose.tools.stars_solve import read_sky_image
 
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -50,6 +60,9 @@ SKY = [
     ("cedar-solve", "2019-07-29T204726_Alt40_Azi-45_Try1.jpg", TRACKER),
     ("cedar-solve", "roof.jpg", WIDE),
     ("cedar-solve", "orion_trees.jpg", WIDE),
+    # Lit foliage beside the sky: its spots outrank the stars (5 stars among the 40
+    # brightest spots); solved by the second search with the textured spots last.
+    ("cedar-solve", "tree.jpg", WIDE),
 ]
 
 
@@ -71,7 +84,11 @@ def test_sky_photo_agrees_with_astrometry_net(
     assert sep_deg(ra, dec, float(ref["ra_deg"]), float(ref["dec_deg"])) < 3 * px_deg
     droll = (roll - float(ref["roll_deg"]) + 180.0) % 360.0 - 180.0
     assert abs(math.radians(droll)) * width / 2 < 3.0
-    assert abs(sol.camera.fov_deg / float(ref["fov_deg"]) - 1) < 0.005
+    # tree.jpg's stars cover the left two thirds only: its field of view (extrapolated to
+    # the right edge through the fitted distortion) within 0.6 % = 3 px across its 512 px,
+    # the pixel tolerance of the two checks above; the others within 0.5 %.
+    fov_tol = 0.006 if name == "tree.jpg" else 0.005
+    assert abs(sol.camera.fov_deg / float(ref["fov_deg"]) - 1) < fov_tol
     assert sol.false_alarm < 1e-9 and sol.star_ids.size >= 8
 
 
@@ -102,3 +119,49 @@ def test_credits_name_every_committed_image() -> None:
         assert (source, name) in listed
         assert listed[(source, name)]["licence"]
         assert name in (DATA / source / "README.md").read_text(encoding="utf-8")
+
+
+def test_tree_needs_the_textured_spots_last() -> None:
+    """tree.jpg's brightest spots are lit leaves: with the brightness order alone tetra3rs
+    finds no pattern (the refusal names the second search only when it ran)."""
+    img = read_sky_image(DATA / "cedar-solve" / "tree.jpg")
+    sol = solve_image(img, replace(WIDE, foreground_texture=0.0))
+    assert sol.status == "no_solution" and "no star pattern" in sol.reason
+    assert "textured foreground" not in sol.reason
+
+
+@pytest.mark.parametrize(("source", "name", "config"), SKY, ids=[s[1] for s in SKY])
+def test_wrong_attitudes_fail_verification(source: str, name: str, config: StarSolveConfig) -> None:
+    """Seeded: 20 uniformly random attitudes and 20 with the reference's boresight moved
+    0.3-5 deg, with the reference's field of view, are all refused by `check_attitude`;
+    the reference attitude itself passes (the check is not blind)."""
+    img = read_sky_image(DATA / source / name)
+    ref = reference(source, name)
+    h, w = img.shape[:2]
+    cam = SkyCamera(w, h, fov_to_focal(float(ref["fov_deg"]), w))
+    stars = extract_stars(img, config.extraction)
+    R0 = attitude(ref)
+    assert check_attitude(stars, R0, cam, config)[0] == ""
+    rng = np.random.default_rng(7)
+    for k in range(40):
+        if k % 2 == 0:
+            q = rng.normal(size=4)
+            R = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
+        else:
+            a, ang = rng.uniform(0, 2 * math.pi), math.radians(rng.uniform(0.3, 5.0))
+            R = R0 @ Rotation.from_rotvec(ang * np.array([math.cos(a), math.sin(a), 0])).as_matrix()
+        assert check_attitude(stars, R, cam, config)[0] != ""
+
+
+def attitude(ref: dict[str, str]) -> np.ndarray:
+    """``inertial_from_camera`` of a reference row (roll: `radec_roll_deg`'s convention)."""
+    ra, dec, roll = (math.radians(float(ref[k])) for k in ("ra_deg", "dec_deg", "roll_deg"))
+    z = np.array([math.cos(dec) * math.cos(ra), math.cos(dec) * math.sin(ra), math.sin(dec)])
+    north = np.array([-math.sin(dec) * math.cos(ra), -math.sin(dec) * math.sin(ra), math.cos(dec)])
+    east = np.array([-math.sin(ra), math.cos(ra), 0.0])
+    y = math.cos(roll) * north + math.sin(roll) * east
+    R = np.column_stack([np.cross(y, z), y, z])
+    np.testing.assert_allclose(
+        radec_roll_deg(R), [math.degrees(ra) % 360, *map(math.degrees, (dec, roll))], atol=1e-9
+    )
+    return R

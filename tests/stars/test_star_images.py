@@ -17,9 +17,12 @@ import pytest
 
 from satpose.datasets.geometry import rotvec_to_matrix
 from satpose.frontend.star_images import (
+    ImageStars,
     SkyCamera,
     StarSolution,
     StarSolveConfig,
+    _chance_match,
+    _false_alarm,
     check_attitude,
     extract_stars,
     fov_to_focal,
@@ -278,3 +281,30 @@ def test_rendered_satellite_is_refused(rendered_tiny: Path) -> None:
     for fr in seq.frames:
         sol = solve_image(fr.image("left"), CONFIG)
         assert sol.status == "no_solution" and sol.reason
+
+
+def test_chance_match_follows_the_spots_local_density() -> None:
+    """Seeded: 200 spots crowded into the top-left 128x128 px (a textured foreground) and 20
+    spread over the rest of a 1024x768 image. A predicted star among the crowd has a chance
+    match probability near the crowd's match-area fraction (200 * pi * 2^2 / 128^2 = 15 %;
+    the window of 192 px also holds sky, so within a factor 2); one on the open sky near
+    its own (20 * pi * 4 / 770,000 = 0.03 %, within a factor 3). The false-alarm probability
+    of 12 matches among 50 predicted stars in the crowd is not small, on the open sky it is
+    far below the solver's 1e-9."""
+    rng = np.random.default_rng(3)
+    crowd = rng.uniform(0, 128, size=(200, 2))
+    sky = rng.uniform([300, 300], [1024, 768], size=(20, 2))
+    px = np.vstack([crowd, sky])
+    n = px.shape[0]
+    z = np.zeros(n)
+    stars = ImageStars(px, z + 1, z + 10, np.zeros(n, bool), z + 0.3, 1024, 768, 1.0, 0, z + 1)
+    radius = np.full(n, 2.0)
+    p = _chance_match(stars, np.array([[64.0, 64.0], [700.0, 500.0]]), radius)
+    crowd_frac = 200 * math.pi * 4 / 128**2
+    assert crowd_frac / 2 < p[0] < crowd_frac * 1.1
+    sky_frac = 20 * math.pi * 4 / (1024 * 768 - 128**2)
+    assert sky_frac / 3 < p[1] < sky_frac * 3
+    in_crowd = rng.uniform(0, 128, size=(50, 2))
+    on_sky = rng.uniform([300, 300], [1024, 768], size=(50, 2))
+    assert _false_alarm(stars, in_crowd, 12, radius) > 1e-3
+    assert _false_alarm(stars, on_sky, 12, radius) < 1e-12  # the solver refuses above 1e-9
