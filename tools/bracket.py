@@ -53,10 +53,12 @@ from satpose.frontend.bracket import (
     to_frame_measurements,
 )
 from satpose.frontend.bracket_lines import (
-    PartialTracker,
+    PartialHypothesis,
     StrutDetection,
     StrutDetectorConfig,
+    detect_partial,
     detect_struts,
+    partial_hypotheses,
 )
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
 from satpose.frontend.preprocess import Undistorter
@@ -174,6 +176,8 @@ def run_bracket(
     angular_noise: float = 1e-5,
     linear_noise: float = 2e-4,
     require_pose: bool = True,
+    decision: str = "offline",
+    labelling: Any = None,
 ) -> dict[str, Any]:
     """Run the bracket method on a mono (or stereo: left image only) sequence; see the module
     docstring for the files. Returns a summary (frames with a pose, RMS errors if truth).
@@ -184,7 +188,15 @@ def run_bracket(
     indeterminate at the first twist (seen on `bracket-final`).
 
     A sequence without any pose is an error unless ``require_pose`` is False (benchmarks:
-    then the trajectories are empty and points.csv holds every frame's reason)."""
+    then the trajectories are empty and points.csv holds every frame's reason).
+
+    The paper's view (a ``bracket`` entry): every frame's consistent poses go to
+    `satpose.backend.labelling.SequenceLabeller` (settings ``labelling``, a
+    `LabellingConfig`; None: its defaults); ``decision`` ``offline`` reports each frame as
+    decided by the whole sequence (back to a track's start), ``online`` from the frames up to
+    it (from the decision on)."""
+    if decision not in ("offline", "online"):
+        raise BracketRunError(f"decision must be offline or online, got {decision!r}")
     seq = load_sequence(sequence_path)
     check_out(out, overwrite, error=BracketRunError)
     geo, fraction = bracket_from_target(seq, side)
@@ -195,12 +207,16 @@ def run_bracket(
     K = cam.K
     det_cfg = StrutDetectorConfig() if detector is None else detector
     partial = partial_view(seq)
-    tracker: PartialTracker | None = None
+    labeller = None
     if partial is not None:
+        from satpose.backend.labelling import SequenceLabeller
+
         det_cfg = replace(det_cfg, strut_radius_m=partial[1])
+        labeller = SequenceLabeller(geo.vertices_m.mean(axis=0), labelling)
+    # paper's view: frame position -> (detection, hypotheses, labeller step, online decision)
+    pending: dict[int, tuple[StrutDetection, list[PartialHypothesis], int, Any]] = {}
+    grey_of: dict[int, np.ndarray] = {}  # overlay frames of the paper's view, drawn at the end
     solver = BracketConfig()
-    if partial is not None:
-        tracker = PartialTracker(K, geo, partial[0], det_cfg)
     bad = BadFrames(seq.root)
     with staged_output(out, overwrite, error=BracketRunError) as stage:
         (stage / "overlay").mkdir()
@@ -230,16 +246,17 @@ def run_bracket(
                         det = StrutDetection(
                             None, None, np.zeros((0, 4)), reason=f"image {prep.problem}"
                         )
-                    elif tracker is not None:
-                        det = tracker.step(k, prep.gray8)
-                        if det.observation is not None and det.result is not None:
-                            result = solve_bracket(
-                                det.observation,
-                                geo,
-                                K,
-                                replace(solver, prior_least_squares=True),
-                                prior_depths=det.result.depths_m,
-                            )
+                    elif labeller is not None and partial is not None:
+                        det = detect_partial(prep.gray8, K, geo, partial[0], det_cfg)
+                        hyps = partial_hypotheses(det, geo, K, partial[0], det_cfg)
+                        labeller.step(fr.t_s, [_candidate(h) for h in hyps])
+                        step = len(labeller.t_s) - 1
+                        online = labeller.online_decision() if decision == "online" else None
+                        pending[k] = (det, hyps, step, online)
+                        if overlay_every > 0 and k % overlay_every == 0:
+                            grey_of[k] = prep.gray8
+                        # reported (or not) once decided, below
+                        det = replace(det, reason=det.reason or "not decided")
                     else:
                         predicted = prev.pose if prev is not None else None
                         det = detect_struts(prep.gray8, K, geo, det_cfg, predicted=predicted)
@@ -279,19 +296,68 @@ def run_bracket(
                             reason,
                         ]
                     )
-                    if overlay_every > 0 and k % overlay_every == 0:
+                    if overlay_every > 0 and k % overlay_every == 0 and k not in grey_of:
                         img = draw_overlay(prep.gray8, det, result, geo, K, truth)
                         cv2.imwrite(str(stage / "overlay" / f"{fr.index:06d}.png"), img)
                 except Exception as exc:
                     log.debug("frame %d: bracket raised", fr.index, exc_info=True)
                     why = exception_failure("bracket", exc)
                     prev = prev_before
+                    pending.pop(k, None)
+                    grey_of.pop(k, None)
             if why is not None:
                 # a frame without a pose: drop what a failed step had added
                 del frames[n0[0] :], per_frame[n0[1] :], rows[n0[2] :]
                 frames.append(FrameMeasurements(frame=fr.index, t_s=fr.t_s, failures=(why,)))
                 rows.append([fr.index, fr.t_s, *[math.nan] * 8, math.nan, why])
             bad.note(fr.index, frames[-1].failures, (fr.left_path,))
+        if labeller is not None:
+            decisions = labeller.decide() if decision == "offline" else None
+            for k, (det, hyps, step, online) in pending.items():
+                fr = seq.frames[k]
+                d = decisions[step] if decisions is not None else online
+                result = None
+                if d is not None and d.candidate is not None:
+                    h = hyps[d.candidate]
+                    assert h.detection is not None and h.detection.result is not None
+                    det = h.detection
+                    assert det.observation is not None and det.result is not None
+                    result = solve_bracket(
+                        det.observation,
+                        geo,
+                        K,
+                        replace(solver, prior_least_squares=True),
+                        prior_depths=det.result.depths_m,
+                    )
+                    reason = result.reason
+                else:
+                    reason = det.reason if not hyps else (d.reason if d is not None else "")
+                    det = replace(det, observation=None, struts=None, result=None)
+                if result is not None and result.pose is not None:
+                    frames[k] = to_frame_measurements(result, fr.index, fr.t_s)
+                else:
+                    frames[k] = FrameMeasurements(
+                        frame=fr.index, t_s=fr.t_s, failures=(f"bracket: {reason or 'no pose'}",)
+                    )
+                obs = det.observation
+                pts = obs.points().ravel().tolist() if obs is not None else [math.nan] * 8
+                rows[k] = [
+                    fr.index,
+                    fr.t_s,
+                    *pts,
+                    obs.sigma_px if obs is not None else math.nan,
+                    reason,
+                ]
+                if k in grey_of:
+                    truth = None
+                    if seq.truth is not None:
+                        try:
+                            truth = seq.truth.pose(seq.truth.row_of_frame(fr.index))
+                        except KeyError:
+                            truth = None
+                    img = draw_overlay(grey_of[k], det, result, geo, K, truth)
+                    cv2.imwrite(str(stage / "overlay" / f"{fr.index:06d}.png"), img)
+            per_frame = [(m.t_s, m.pose.left_cam_from_target) for m in frames if m.pose is not None]
         with open(stage / "points.csv", "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(POINT_COLUMNS)
@@ -382,6 +448,21 @@ def run_bracket(
     return summary
 
 
+def _candidate(h: PartialHypothesis) -> Any:
+    """A frame's consistent pose as the labeller weighs it: the refined pose with its
+    covariance, the misfit of the over-determined image quantities."""
+    from satpose.backend.labelling import Candidate
+    from satpose.frontend.measurements import PoseMeasurement, PoseMethod
+
+    return Candidate(
+        pose=PoseMeasurement(
+            left_cam_from_target=h.refined, covariance=h.covariance, method=PoseMethod.BRACKET
+        ),
+        image_chi2=h.image_chi2,
+        image_dim=h.image_dim,
+    )
+
+
 def refusal_summary(frames: list[FrameMeasurements], first: int = 3) -> str:
     """``"N of M frames without a pose: <reason> (count), ..."`` for the frames whose bracket
     pose was refused, the ``first`` most frequent reasons named (the text before the
@@ -409,6 +490,7 @@ def _handler(args: argparse.Namespace) -> None:
         overwrite=args.overwrite,
         angular_noise=args.angular_noise,
         linear_noise=args.linear_noise,
+        decision=args.decision,
     )
     refused = summary.pop("refused", "")
     print(
@@ -446,6 +528,13 @@ def register(subparsers: Any) -> None:
         type=float,
         default=2e-4,
         help="smoother: linear acceleration noise [m/s^2/sqrt(Hz)] (default 2e-4)",
+    )
+    p.add_argument(
+        "--decision",
+        choices=("offline", "online"),
+        default="offline",
+        help="paper's view: report a frame's labelling as decided by the whole sequence "
+        "(offline, the default) or by the frames up to it (online)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.set_defaults(handler=_handler)
