@@ -6,8 +6,10 @@ with the backend's constant-twist smoother (loosely coupled). The bracket geomet
 target.yaml: ``bracket`` if present, else ``solar_brackets[--side]`` (a known-geometry method
 reads only the geometry it needs). Ground truth, if present, is used only for the report.
 A ``bracket`` entry (the paper's view: ``visible_fraction`` and the struts' diameter
-``bracket_strut_width_m``) is measured with `satpose.frontend.bracket_lines.PartialTracker`
-(base strut and stubs, labelling settled over frames, ambiguous frames refused);
+``bracket_strut_width_m``) is measured with `satpose.frontend.bracket_lines.detect_partial`
+(base strut and stubs; every consistent pose of a frame) and the labelling is decided over
+frames by `satpose.backend.labelling.SequenceLabeller` (``--decision offline|online``;
+frames the motion cannot decide are refused);
 ``solar_brackets`` (whole triangle with its yoke) with ``detect_struts``.
 
 DIR (written to a temporary folder, then renamed):
@@ -15,6 +17,8 @@ DIR (written to a temporary folder, then renamed):
 - ``trajectory.tum``: ``left_cam_from_target`` of the smoother (or the per-frame poses with
   ``--estimator none``), TUM ``t tx ty tz qx qy qz qw``;
 - ``per_frame.tum``: the per-frame bracket poses;
+- ``per_frame_online.tum`` (paper's view): the per-frame poses an ``--decision online`` run
+  reports (each frame decided from the frames up to it), whatever ``--decision`` says;
 - ``points.csv``: per frame the four image points, their sigma, the pose method or the reason
   a frame has no pose;
 - ``overlay/NNNNNN.png``: every ``--overlay-every``-th frame with the LSD segments, strut
@@ -251,8 +255,7 @@ def run_bracket(
                         hyps = partial_hypotheses(det, geo, K, partial[0], det_cfg)
                         labeller.step(fr.t_s, [_candidate(h) for h in hyps])
                         step = len(labeller.t_s) - 1
-                        online = labeller.online_decision() if decision == "online" else None
-                        pending[k] = (det, hyps, step, online)
+                        pending[k] = (det, hyps, step, labeller.online_decision())
                         if overlay_every > 0 and k % overlay_every == 0:
                             grey_of[k] = prep.gray8
                         # reported (or not) once decided, below
@@ -311,28 +314,39 @@ def run_bracket(
                 frames.append(FrameMeasurements(frame=fr.index, t_s=fr.t_s, failures=(why,)))
                 rows.append([fr.index, fr.t_s, *[math.nan] * 8, math.nan, why])
             bad.note(fr.index, frames[-1].failures, (fr.left_path,))
+        online_poses: list[tuple[float, Rigid3]] = []
         if labeller is not None:
-            decisions = labeller.decide() if decision == "offline" else None
+            decisions = labeller.decide()
+
+            def reported(
+                det: StrutDetection, hyps: list[PartialHypothesis], d: Any
+            ) -> tuple[StrutDetection, BracketResult | None, str]:
+                """The decided frame's detection and pose (solved with its covariance), or
+                the refusal."""
+                if d.candidate is None:
+                    why = det.reason if not hyps else d.reason
+                    return replace(det, observation=None, struts=None, result=None), None, why
+                chosen = hyps[d.candidate].detection
+                assert chosen is not None and chosen.observation is not None
+                assert chosen.result is not None
+                res = solve_bracket(
+                    chosen.observation,
+                    geo,
+                    K,
+                    replace(solver, prior_least_squares=True),
+                    prior_depths=chosen.result.depths_m,
+                )
+                return chosen, res, res.reason
+
             for k, (det, hyps, step, online) in pending.items():
                 fr = seq.frames[k]
-                d = decisions[step] if decisions is not None else online
-                result = None
-                if d is not None and d.candidate is not None:
-                    h = hyps[d.candidate]
-                    assert h.detection is not None and h.detection.result is not None
-                    det = h.detection
-                    assert det.observation is not None and det.result is not None
-                    result = solve_bracket(
-                        det.observation,
-                        geo,
-                        K,
-                        replace(solver, prior_least_squares=True),
-                        prior_depths=det.result.depths_m,
-                    )
-                    reason = result.reason
+                det_on, result_on, _ = reported(det, hyps, online)
+                if result_on is not None and result_on.pose is not None:
+                    online_poses.append((fr.t_s, result_on.pose))
+                if decision == "online":
+                    det, result, reason = det_on, result_on, _
                 else:
-                    reason = det.reason if not hyps else (d.reason if d is not None else "")
-                    det = replace(det, observation=None, struts=None, result=None)
+                    det, result, reason = reported(det, hyps, decisions[step])
                 if result is not None and result.pose is not None:
                     frames[k] = to_frame_measurements(result, fr.index, fr.t_s)
                 else:
@@ -358,6 +372,11 @@ def run_bracket(
                     img = draw_overlay(grey_of[k], det, result, geo, K, truth)
                     cv2.imwrite(str(stage / "overlay" / f"{fr.index:06d}.png"), img)
             per_frame = [(m.t_s, m.pose.left_cam_from_target) for m in frames if m.pose is not None]
+            write_tum(
+                [t for t, _ in online_poses],
+                [p for _, p in online_poses],
+                stage / "per_frame_online.tum",
+            )
         with open(stage / "points.csv", "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(POINT_COLUMNS)
