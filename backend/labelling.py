@@ -367,6 +367,25 @@ class SequenceLabeller:
             unique.setdefault(key, tr)
         return list(unique.values())[: cfg.max_tracks]
 
+    def predictions(self, t_s: float, n: int = 3) -> list[Rigid3]:
+        """The constant-twist predictions at time ``t_s`` of the ``n`` best tracks that were
+        continued within the last ``max_gap + 1`` frames, one per hypothesis (predictions
+        within the rival distance of a better track's are left out): where a detector
+        searching near a prediction may find a pose its open search missed."""
+        k = len(self.t_s)
+        out: list[Rigid3] = []
+        for tr in self.tracks:
+            if len(out) >= n:
+                break
+            if k - tr.last > self.config.max_gap + 1:
+                continue
+            T = tr.fit.poses[-1]
+            if len(tr.picks) >= 2:
+                T = predict(T, tr.fit.twists[-1], t_s - self.t_s[tr.last])
+            if all(self._disagree(T, q) for q in out):
+                out.append(T)
+        return out
+
     # -- decisions -------------------------------------------------------------------------
 
     def _pose_at(self, tr: _Track, k: int) -> Rigid3 | None:

@@ -1040,12 +1040,15 @@ def partial_hypotheses(
     K: np.ndarray,
     fraction: float,
     config: StrutDetectorConfig | None = None,
+    extra: list[StrutDetection] | None = None,
 ) -> list[PartialHypothesis]:
     """Every consistent pose of a `detect_partial` result (its ``alternatives``, or the one
-    pose), weighed with ``config.vertex_sigma_px`` / ``direction_sigma_deg`` and the
-    verification's stub-end noise; [] when the frame has none."""
+    pose) and of ``extra`` detections of the same image (searches near predicted poses),
+    weighed with ``config.vertex_sigma_px`` / ``direction_sigma_deg`` and the verification's
+    stub-end noise; [] when the frame has none."""
     cfg = StrutDetectorConfig() if config is None else config
     dets = list(det.alternatives) if det.alternatives else [det]
+    dets += list(extra or [])
     dets = [
         d
         for d in dets

@@ -62,6 +62,7 @@ from satpose.frontend.bracket_lines import (
     StrutDetectorConfig,
     detect_partial,
     detect_struts,
+    partial_candidates,
     partial_hypotheses,
 )
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
@@ -182,6 +183,7 @@ def run_bracket(
     require_pose: bool = True,
     decision: str = "offline",
     labelling: Any = None,
+    predicted_searches: int = 3,
 ) -> dict[str, Any]:
     """Run the bracket method on a mono (or stereo: left image only) sequence; see the module
     docstring for the files. Returns a summary (frames with a pose, RMS errors if truth).
@@ -198,7 +200,8 @@ def run_bracket(
     `satpose.backend.labelling.SequenceLabeller` (settings ``labelling``, a
     `LabellingConfig`; None: its defaults); ``decision`` ``offline`` reports each frame as
     decided by the whole sequence (back to a track's start), ``online`` from the frames up to
-    it (from the decision on)."""
+    it (from the decision on). Each frame is also searched near the predictions of the
+    ``predicted_searches`` best tracks."""
     if decision not in ("offline", "online"):
         raise BracketRunError(f"decision must be offline or online, got {decision!r}")
     seq = load_sequence(sequence_path)
@@ -251,8 +254,26 @@ def run_bracket(
                             None, None, np.zeros((0, 4)), reason=f"image {prep.problem}"
                         )
                     elif labeller is not None and partial is not None:
-                        det = detect_partial(prep.gray8, K, geo, partial[0], det_cfg)
-                        hyps = partial_hypotheses(det, geo, K, partial[0], det_cfg)
+                        cands = partial_candidates(prep.gray8, det_cfg)
+                        det = detect_partial(
+                            prep.gray8, K, geo, partial[0], det_cfg, prepared=cands
+                        )
+                        # also near the best tracks' predictions (a least-squares start
+                        # there finds a pose whose P3P pair noise turned complex)
+                        near = [
+                            detect_partial(
+                                prep.gray8, K, geo, partial[0], det_cfg, predicted=p, prepared=cands
+                            )
+                            for p in labeller.predictions(fr.t_s, predicted_searches)
+                        ]
+                        hyps = partial_hypotheses(
+                            det,
+                            geo,
+                            K,
+                            partial[0],
+                            det_cfg,
+                            extra=[d for d in near if d.result is not None],
+                        )
                         labeller.step(fr.t_s, [_candidate(h) for h in hyps])
                         step = len(labeller.t_s) - 1
                         pending[k] = (det, hyps, step, labeller.online_decision())
