@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import gtsam
 import numpy as np
@@ -45,10 +46,11 @@ from satpose.backend.motion import (
     MotionConfig,
     constant_twist_factor,
     predict,
+    process_covariance,
     twist_between,
     twist_prior_factor,
 )
-from satpose.backend.pose3 import from_state, local_error, to_state
+from satpose.backend.pose3 import from_state, local_error, state_to_pose_jacobian, to_state
 from satpose.backend.solve import levenberg_marquardt
 from satpose.datasets.geometry import Rigid3
 from satpose.frontend.measurements import PoseMeasurement
@@ -56,21 +58,42 @@ from satpose.frontend.measurements import PoseMeasurement
 _GAUSSIAN = MeasurementConfig(coupling="loose", robust="none")
 
 
+class ImageResidual(Protocol):
+    """A frame's measured quantities as a function of the pose: whitened residuals ``r``
+    (``dim``,) and their Jacobian (``dim`` x 6) for the right perturbation ``T Exp(xi)``,
+    ``xi = [rotation, translation]`` (e.g. `satpose.frontend.bracket_lines.PartialImageModel`)."""
+
+    @property
+    def dim(self) -> int: ...
+
+    def residual_and_jacobian(self, pose: Rigid3) -> tuple[np.ndarray, np.ndarray]: ...
+
+
 @dataclass(frozen=True, kw_only=True)
 class Candidate:
     """One consistent pose of a frame.
 
     Attributes:
-        pose: the pose with the covariance of the image quantities that fix it.
-        image_chi2: squared normalised misfit of what the pose does not fix exactly (visible
-            strut ends, strut widths); 0 when nothing is over-determined.
+        pose: the pose with its (first-order) covariance: the start of the fit, and what
+            gates and rival distances are measured with.
+        image: the frame's measured quantities as a function of the pose: the fit weighs
+            these (not the Gaussian ``pose``) against the motion; None: ``pose`` is the
+            measurement (a Gaussian prior).
+        image_chi2: squared normalised misfit of what neither is about (strut widths); 0
+            when nothing else is over-determined.
         image_dim: how many such quantities (the expected value of ``image_chi2``).
+        group: candidates of a frame with the same ``group`` (>= 0) share their measured
+            quantities (one labelling of the same struts, another P3P solution): a track
+            may take that ``image`` with its own predicted pose when no candidate pose of the
+            group is near it (the solution near the truth can vanish in noise).
         ref: the caller's handle (e.g. the detection), returned with the decision.
     """
 
     pose: PoseMeasurement
+    image: ImageResidual | None = None
     image_chi2: float = 0.0
     image_dim: int = 0
+    group: int = -1
     ref: object = None
 
     def __post_init__(self) -> None:
@@ -100,7 +123,10 @@ class LabellingConfig:
             0: motion only).
         gate_deg, gate_rel: a candidate continues a track when it lies within ``gate_deg`` in
             attitude and ``gate_rel`` x range (+ 2 cm) at ``centre_m`` of the track's
-            constant-twist prediction.
+            constant-twist prediction, ...
+        gate_chi2: ... or within this chi-square (6 dof; 22.5: 99.9 %) of it, with the
+            candidate's covariance plus the track's last pose's and the motion's over the
+            gap (a pose near a double P3P root is uncertain by tens of degrees in tilt).
         rival_deg, rival_rel: two tracks disagree at a frame when their poses there differ by
             more than this (the frontend's rival distance: another labelling or P3P solution)
         rival_chi2: ... and when the other pose lies outside the reported candidate's
@@ -122,6 +148,7 @@ class LabellingConfig:
     image_weight: float = 1.0
     gate_deg: float = 15.0
     gate_rel: float = 0.25
+    gate_chi2: float = 22.5
     rival_deg: float = 8.0
     rival_rel: float = 0.05
     rival_chi2: float = 16.8
@@ -150,32 +177,52 @@ class TrackFit:
     twists: np.ndarray
 
 
+def image_factor(i: int, model: ImageResidual) -> gtsam.CustomFactor:
+    """The frame's measured quantities on ``X(i)`` (whitened: unit noise). The graph stores
+    ``X = T^-1``; ``X Exp(d)`` is ``T Exp(-Ad_X d)`` (`state_to_pose_jacobian`)."""
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
+        X_i = values.atPose3(this.keys()[0])
+        r, J = model.residual_and_jacobian(from_state(X_i))
+        if H is not None:
+            H[0] = np.asfortranarray(J @ state_to_pose_jacobian(X_i))
+        return r
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(model.dim), [X(i)], error)
+
+
 def fit_track(
     t_s: np.ndarray,
-    poses: list[PoseMeasurement],
+    candidates: list[Candidate],
     motion: MotionConfig,
     initial: tuple[list[Rigid3], np.ndarray] | None = None,
 ) -> TrackFit:
-    """Batch fit of the constant-twist prior to per-frame poses (Gaussian, no robust kernel:
-    the error is a likelihood). ``t_s`` increasing [s]; ``initial`` (poses, twists) warm
-    start, else the measured poses and finite-difference twists."""
-    n = len(poses)
+    """Batch fit of the constant-twist prior to one candidate per frame: each frame's
+    measured quantities (``image``) or, without them, its pose as a Gaussian prior (no
+    robust kernel: the error is a likelihood). ``t_s`` increasing [s]; ``initial`` (poses,
+    twists) warm start, else the candidates' poses and finite-difference twists. Degrees of
+    freedom: the residuals' (``image.dim`` or 6 per frame) minus 6."""
+    n = len(candidates)
     if n == 0 or len(t_s) != n:
-        raise BackendError(f"fit_track: {len(t_s)} times for {n} poses")
-    T = [p.left_cam_from_target for p in poses]
-    if n == 1:
+        raise BackendError(f"fit_track: {len(t_s)} times for {n} candidates")
+    T = [c.pose.left_cam_from_target for c in candidates]
+    dims = [c.image.dim if c.image is not None else 6 for c in candidates]
+    if n == 1 and candidates[0].image is None:
         return TrackFit(0.0, 0, (T[0],), np.zeros((1, 6)))
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     graph.add(twist_prior_factor(0, motion))
     if initial is None:
         tw = [twist_between(T[i], T[i + 1], float(t_s[i + 1] - t_s[i])) for i in range(n - 1)]
-        twists = np.array([*tw, tw[-1]])
+        twists = np.array([*tw, tw[-1]]) if tw else np.zeros((1, 6))
         start = T
     else:
         start, twists = initial
-    for i in range(n):
-        graph.add(pose_factor(poses[i], i, _GAUSSIAN))
+    for i, c in enumerate(candidates):
+        if c.image is not None:
+            graph.add(image_factor(i, c.image))
+        else:
+            graph.add(pose_factor(c.pose, i, _GAUSSIAN))
         values.insert(X(i), to_state(start[i]))
         values.insert(V(i), np.asarray(twists[i], float))
         if i > 0:
@@ -184,7 +231,7 @@ def fit_track(
     out = sol.values
     return TrackFit(
         float(sol.error),
-        6 * n - 6,
+        sum(dims) - 6,
         tuple(from_state(out.atPose3(X(i))) for i in range(n)),
         np.array([out.atVector(V(i)) for i in range(n)]),
     )
@@ -207,6 +254,7 @@ class _Track:
     image_cost: float
     misses: int
     cost: float = 0.0
+    starts: dict[int, Rigid3] = field(default_factory=dict)
 
     @property
     def first(self) -> int:
@@ -228,6 +276,8 @@ class Decision:
             at this frame (or the null track); NaN when the frame had no candidate.
         reason: why nothing is reported ("" when a candidate is).
         tracks: how many tracks were alive.
+        pose: the reporting track's fitted pose at this frame (the candidate's measured
+            quantities weighed with the motion), or None.
     """
 
     frame: int
@@ -235,6 +285,7 @@ class Decision:
     log_lr: float
     reason: str
     tracks: int
+    pose: Rigid3 | None = None
 
 
 class SequenceLabeller:
@@ -276,19 +327,23 @@ class SequenceLabeller:
             + cfg.miss_cost * misses
         )
 
-    def _fit(self, picks: dict[int, int], parent: _Track | None) -> TrackFit:
+    def _fit(
+        self, picks: dict[int, int], parent: _Track | None, start: Rigid3 | None = None
+    ) -> TrackFit:
         ks = sorted(picks)
         t = np.array([self.t_s[k] for k in ks])
-        poses = [self.candidates[k][picks[k]].pose for k in ks]
+        cands = [self.candidates[k][picks[k]] for k in ks]
         init = None
         if parent is not None and len(parent.fit.poses) == len(ks) - 1:
-            # warm start: the parent's solution and the new pose with the last twist
+            # warm start: the parent's solution and the new pose (or ``start``) with the
+            # last twist
+            new = cands[-1].pose.left_cam_from_target if start is None else start
             init = (
-                [*parent.fit.poses, poses[-1].left_cam_from_target],
+                [*parent.fit.poses, new],
                 np.vstack([parent.fit.twists, parent.fit.twists[-1:]]),
             )
         self.fits += 1
-        return fit_track(t, poses, self.config.motion, init)
+        return fit_track(t, cands, self.config.motion, init)
 
     def _image_cost(self, picks: dict[int, int]) -> float:
         return sum(
@@ -307,6 +362,20 @@ class SequenceLabeller:
         ang, dist = _distance(pose, pred, self.centre)
         rng = float(np.linalg.norm(pred.apply(self.centre[None])[0]))
         return ang <= self.config.gate_deg and dist <= self.config.gate_rel * rng + 0.02
+
+    def _in_chi2_gate(self, cand: PoseMeasurement, pred: Rigid3, cov: np.ndarray) -> bool:
+        """Whether ``cand`` is within ``gate_chi2`` of the prediction, with the candidate's
+        covariance plus ``cov`` (the track's last pose's and the motion's over the gap)."""
+        d = local_error(pred, cand.left_cam_from_target)
+        S = cand.covariance + cov
+        return float(d @ np.linalg.solve(S, d)) <= self.config.gate_chi2
+
+    def _image_gate(self, image: ImageResidual, pred: Rigid3, cov: np.ndarray) -> bool:
+        """Whether the predicted pose (covariance ``cov``) explains the measured quantities
+        within ``gate_chi2``: ``r^T (I + J cov J^T)^-1 r`` at the prediction."""
+        r, J = image.residual_and_jacobian(pred)
+        S = np.eye(len(r)) + J @ cov @ J.T
+        return float(r @ np.linalg.solve(S, r)) <= self.config.gate_chi2
 
     def step(self, t_s: float, candidates: list[Candidate]) -> None:
         """Add the next frame (time ``t_s`` [s], increasing) with its candidate poses (an
@@ -344,15 +413,30 @@ class SequenceLabeller:
                 new.append(tr)  # too long without a candidate: kept as it is, not continued
                 continue
             pred = self._prediction(tr, k)
+            last = self.candidates[tr.last][tr.picks[tr.last]].pose.covariance
+            Q = process_covariance(self.t_s[k] - self.t_s[tr.last], cfg.motion)[:6, :6]
             hit = [
                 j
                 for j, c in enumerate(candidates)
                 if self._in_gate(c.pose.left_cam_from_target, pred)
+                or self._in_chi2_gate(c.pose, pred, last + Q)
             ]
             for j in hit:
                 picks = {**tr.picks, k: j}
                 new.append(_Track(picks, self._fit(picks, tr), self._image_cost(picks), 0))
                 used.add(j)
+            # a group of measured quantities none of whose candidate poses is near the
+            # prediction, but which the predicted pose explains: taken from the prediction
+            hit_groups = {candidates[j].group for j in hit}
+            for g in sorted({c.group for c in candidates if c.group >= 0} - hit_groups):
+                j = next(i for i, c in enumerate(candidates) if c.group == g)
+                image = candidates[j].image
+                if image is None or len(tr.picks) < 2:
+                    continue
+                if self._image_gate(image, pred, last + Q):
+                    picks = {**tr.picks, k: j}
+                    fit = self._fit(picks, tr, pred)
+                    new.append(_Track(picks, fit, self._image_cost(picks), 0))
             new.append(tr)  # the track without this frame's candidates (a miss if any)
         for j in range(len(candidates)):
             if j not in used:
@@ -360,12 +444,27 @@ class SequenceLabeller:
                 new.append(_Track(picks, self._fit(picks, None), self._image_cost(picks), 0))
         for tr in new:
             tr.cost = self._score(tr)
-        # the same hypothesis reached twice (picks that agree at every frame) counts once
+        # the same hypothesis reached twice (picks that agree at every frame, or fits that
+        # do: two starts in one basin of the likelihood) counts once
         unique: dict[tuple[tuple[int, int], ...], _Track] = {}
         for tr in sorted(new, key=lambda x: x.cost):
             key = tuple(sorted((f, self.labels[f][j]) for f, j in tr.picks.items()))
             unique.setdefault(key, tr)
-        return list(unique.values())[: cfg.max_tracks]
+        kept: list[_Track] = []
+        for tr in unique.values():
+            if len(kept) >= cfg.max_tracks:
+                break
+            if any(self._same(tr, q) for q in kept):
+                continue
+            kept.append(tr)
+        return kept
+
+    def _same(self, a: _Track, b: _Track) -> bool:
+        """Two tracks over the same frames whose fitted poses agree (within the rival
+        distance) at every one of them."""
+        if set(a.picks) != set(b.picks):
+            return False
+        return all(not self._disagree(p, q) for p, q in zip(a.fit.poses, b.fit.poses, strict=True))
 
     def predictions(self, t_s: float, n: int = 3) -> list[Rigid3]:
         """The constant-twist predictions at time ``t_s`` of the ``n`` best tracks that were
@@ -389,11 +488,11 @@ class SequenceLabeller:
     # -- decisions -------------------------------------------------------------------------
 
     def _pose_at(self, tr: _Track, k: int) -> Rigid3 | None:
-        """The track's pose at frame ``k``: its candidate, else its smoothed pose between its
-        frames, else None (outside its span)."""
-        if k in tr.picks:
-            return self.candidates[k][tr.picks[k]].pose.left_cam_from_target
+        """The track's fitted pose at frame ``k``: at its frames, else predicted from the
+        previous one within its span, else None (outside its span)."""
         ks = sorted(tr.picks)
+        if k in tr.picks:
+            return tr.fit.poses[ks.index(k)]
         if not ks[0] < k < ks[-1]:
             return None
         i = max(i for i, f in enumerate(ks) if f < k)
@@ -418,20 +517,22 @@ class SequenceLabeller:
         there disagrees with ``best``'s, or it has none there (a gap or outside its span)
         and disagrees with ``best`` at a frame where both have one. A track that agrees
         wherever both have a pose (e.g. ``best`` without its last frame) is no rival."""
-        mine = self.candidates[k][best.picks[k]].pose
+        cov = self.candidates[k][best.picks[k]].pose.covariance
+        mine = self._pose_at(best, k)
+        assert mine is not None
         other = self._pose_at(tr, k)
         if other is not None and k in tr.picks:
-            return self._disagree(mine.left_cam_from_target, other, mine.covariance)
-        if other is not None and self._disagree(mine.left_cam_from_target, other, mine.covariance):
+            return self._disagree(mine, other, cov)
+        if other is not None and self._disagree(mine, other, cov):
             return True
         for f, j in best.picks.items():
             if f == k:
                 continue
             theirs = self._pose_at(tr, f)
-            if theirs is None:
+            ours = self._pose_at(best, f)
+            if theirs is None or ours is None:
                 continue
-            c = self.candidates[f][j].pose
-            if self._disagree(c.left_cam_from_target, theirs, c.covariance):
+            if self._disagree(ours, theirs, self.candidates[f][j].pose.covariance):
                 return True
         return False
 
@@ -449,7 +550,7 @@ class SequenceLabeller:
         )
         lr = rival - best.cost
         if lr >= self.config.log_lr_threshold:
-            return Decision(k, best.picks[k], lr, "", n)
+            return Decision(k, best.picks[k], lr, "", n, self._pose_at(best, k))
         return Decision(
             k,
             None,

@@ -884,69 +884,132 @@ def _quantity_sigmas(
     return np.array([sigma_px] * 4 + [sigma_dir_rad] * 2 + ends)
 
 
-def refine_partial_pose(
-    pose: Rigid3,
-    z: np.ndarray,
-    vertices: np.ndarray,
-    K: np.ndarray,
-    fraction: float,
-    sigma_px: float,
-    sigma_dir_rad: float,
-    config: StrutDetectorConfig | None = None,
-    iterations: int = 5,
-) -> tuple[Rigid3, np.ndarray, float]:
-    """The pose that best fits every measured quantity ``z`` (`partial_measured_quantities`),
-    started from ``pose`` (a P3P solution, which fits the first six exactly and ignores the
-    stub lengths): Gauss-Newton on the whitened residuals, noise ``sigma_px`` per vertex
-    coordinate, ``sigma_dir_rad`` per strut direction and the verification's
-    ``end_sigma_px + end_sigma_rel * length`` per stub length. Returns ``(pose, covariance
-    (6x6, [rotation, translation], right perturbation), chi2)``: the local maximum of the
-    likelihood of this frame's image quantities, its first-order covariance and the
-    residual chi-square (``len(z) - 6`` degrees of freedom). Without the stub lengths the
-    pose is exactly determined: the P3P solution's covariance, chi2 0. Each P3P solution
-    is so turned into a Gaussian measurement of the pose that a smoother can weigh against
-    the motion (`satpose.backend.labelling`)."""
-    cfg = StrutDetectorConfig() if config is None else config
-    z = np.asarray(z, dtype=float)
-    stubs = len(z) > 6
-    w = 1.0 / _quantity_sigmas(z, sigma_px, sigma_dir_rad, cfg)
-    eps = 1e-6
+@dataclass(frozen=True)
+class PartialImageModel:
+    """The whitened misfit of one frame's measured quantities (`partial_measured_quantities`)
+    as a function of the pose: ``r(T) = (z - h(T)) / sigma`` with ``h`` =
+    `partial_image_quantities`, noise ``sigma_px`` per vertex coordinate, ``sigma_dir_rad``
+    per strut direction and the verification's ``end_sigma_px + end_sigma_rel * length`` per
+    stub length. ``residual_and_jacobian`` is what a smoother needs to weigh the image itself
+    (not a Gaussian approximation of the pose) against the motion (`satpose.backend.labelling`):
+    near a double P3P root the likelihood of the pose is far from Gaussian."""
 
-    def residual(T: Rigid3) -> np.ndarray:
-        r = z - partial_image_quantities(T, vertices, K, fraction, stubs)
+    z: np.ndarray
+    sigma: np.ndarray
+    vertices: np.ndarray
+    K: np.ndarray
+    fraction: float
+
+    @staticmethod
+    def of(
+        z: np.ndarray,
+        vertices: np.ndarray,
+        K: np.ndarray,
+        fraction: float,
+        config: StrutDetectorConfig,
+    ) -> PartialImageModel:
+        """The model of quantities ``z`` with ``config``'s noise levels."""
+        zz = np.asarray(z, dtype=float)
+        sig = _quantity_sigmas(
+            zz, config.vertex_sigma_px, math.radians(config.direction_sigma_deg), config
+        )
+        return PartialImageModel(zz, sig, np.asarray(vertices, float), np.asarray(K), fraction)
+
+    @property
+    def dim(self) -> int:
+        return len(self.z)
+
+    def residual(self, pose: Rigid3) -> np.ndarray:
+        """Whitened ``(z - h(pose)) / sigma``, angles wrapped."""
+        r = self.z - partial_image_quantities(
+            pose, self.vertices, self.K, self.fraction, len(self.z) > 6
+        )
         r[4:6] = (r[4:6] + math.pi) % (2 * math.pi) - math.pi
-        return r * w
+        return r / self.sigma
 
-    def moved(T: Rigid3, xi: np.ndarray) -> Rigid3:
-        return T @ Rigid3(R=rotvec_to_matrix(xi[:3]), t=xi[3:])
+    def residual_and_jacobian(self, pose: Rigid3) -> tuple[np.ndarray, np.ndarray]:
+        """``r`` and ``dr/dxi`` (m x 6) for the right perturbation ``pose Exp(xi)``,
+        ``xi = [rotation, translation]`` (analytic: ``dP/dxi = [-R [X]x, R]`` for a model
+        point ``X`` seen at ``P = R X + t``, through the pinhole and the quantities)."""
+        V = self.vertices
+        f = self.fraction
+        X = np.array([V[0], V[1], V[2], V[0] + f * (V[2] - V[0]), V[1] + f * (V[2] - V[1])])
+        R, t = pose.R, pose.t
+        P = X @ R.T + t
+        fx, fy = float(self.K[0, 0]), float(self.K[1, 1])
+        x, y, zc = P[:, 0], P[:, 1], P[:, 2]
+        u = np.stack([fx * x / zc + self.K[0, 2], fy * y / zc + self.K[1, 2]], axis=1)
+        # d(pixel)/dP (5, 2, 3) and dP/dxi (5, 3, 6)
+        dU = np.zeros((5, 2, 3))
+        dU[:, 0, 0] = fx / zc
+        dU[:, 0, 2] = -fx * x / zc**2
+        dU[:, 1, 1] = fy / zc
+        dU[:, 1, 2] = -fy * y / zc**2
+        dP = np.zeros((5, 3, 6))
+        RX = np.einsum("ij,njk->nik", R, _skews(X))
+        dP[:, :, :3] = -RX
+        dP[:, :, 3:] = R
+        Ju = np.einsum("nab,nbc->nac", dU, dP)  # (5, 2, 6)
+        h = [u[0, 0], u[0, 1], u[1, 0], u[1, 1]]
+        J = [Ju[0, 0], Ju[0, 1], Ju[1, 0], Ju[1, 1]]
+        for a in (0, 1):  # strut directions toward the apex
+            d = u[2] - u[a]
+            dd = Ju[2] - Ju[a]
+            h.append(math.atan2(d[1], d[0]))
+            J.append((d[0] * dd[1] - d[1] * dd[0]) / float(d @ d))
+        if self.dim > 6:
+            for a, e in ((0, 3), (1, 4)):  # stub lengths
+                d = u[e] - u[a]
+                n = float(np.linalg.norm(d))
+                h.append(n)
+                J.append((d[0] * (Ju[e, 0] - Ju[a, 0]) + d[1] * (Ju[e, 1] - Ju[a, 1])) / n)
+        r = self.z - np.array(h)
+        r[4:6] = (r[4:6] + math.pi) % (2 * math.pi) - math.pi
+        return r / self.sigma, -np.array(J) / self.sigma[:, None]
 
+
+def _skews(v: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) cross-product matrices of the rows of ``v`` (n, 3)."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
+def _moved(T: Rigid3, xi: np.ndarray) -> Rigid3:
+    """``T`` perturbed on the right by ``xi = [rotation, translation]`` (first order equal to
+    ``T Exp(xi)``)."""
+    return T @ Rigid3(R=rotvec_to_matrix(xi[:3]), t=xi[3:])
+
+
+def refine_partial_pose(
+    pose: Rigid3, model: PartialImageModel, iterations: int = 5
+) -> tuple[Rigid3, np.ndarray, float]:
+    """The pose that best fits every measured quantity of ``model``, started from ``pose``
+    (a P3P solution, which fits ``p1, p2`` and the strut directions exactly and ignores the
+    stub lengths): Gauss-Newton with step halving. Returns ``(pose, covariance (6x6,
+    [rotation, translation], right perturbation), chi2)``: the local maximum of this frame's
+    likelihood, its first-order covariance and the residual chi-square (``model.dim - 6``
+    degrees of freedom; without the stub lengths the pose is exactly determined: chi2 0)."""
     T = pose
-    r = residual(T)
-    J = np.zeros((len(z), 6))
+    r, J = model.residual_and_jacobian(T)
     for _ in range(iterations):
-        for i in range(6):
-            e = np.zeros(6)
-            e[i] = eps
-            J[:, i] = (residual(moved(T, -e)) - residual(moved(T, e))) / (2 * eps)
-        # r(T Exp(d)) ~ r - J d
-        step, *_ = np.linalg.lstsq(J, r, rcond=None)
+        # r(T Exp(d)) ~ r + J d
+        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
         # a step along the weakly determined tilt can be long: halve it until it helps
         for _halving in range(8):
-            T_new = moved(T, step)
-            r_new = residual(T_new)
+            T_new = _moved(T, step)
+            r_new = model.residual(T_new)
             if float(r_new @ r_new) <= float(r @ r):
                 break
             step = 0.5 * step
         else:
             break
         done = float(r @ r) - float(r_new @ r_new) < 1e-10
-        T, r = T_new, r_new
+        T = T_new
+        r, J = model.residual_and_jacobian(T)
         if done:
             break
-    for i in range(6):
-        e = np.zeros(6)
-        e[i] = eps
-        J[:, i] = (residual(moved(T, e)) - residual(moved(T, -e))) / (2 * eps)
     C = np.linalg.pinv(J.T @ J)
     return T, 0.5 * (C + C.T), float(r @ r)
 
@@ -982,6 +1045,8 @@ class PartialHypothesis:
         image_chi2: the misfit of the over-determined quantities at ``refined``: the stub
             lengths (fraction < 1) and the strut widths.
         image_dim: their number (2 per kind).
+        model: the frame's measured quantities as a function of the pose.
+        width_chi2: the strut widths' part of ``image_chi2`` (2 dof with a known radius).
         detection: the detection it came from (None: noise-free).
     """
 
@@ -990,6 +1055,8 @@ class PartialHypothesis:
     covariance: np.ndarray
     image_chi2: float
     image_dim: int
+    model: PartialImageModel
+    width_chi2: float = 0.0
     detection: StrutDetection | None = None
 
 
@@ -1007,17 +1074,14 @@ def _weigh(
     V = geometry.vertices_m
     ctr = V.mean(axis=0)
     out: list[PartialHypothesis] = []
-    sig_dir = math.radians(cfg.direction_sigma_deg)
     for (pose, det), o, st in zip(poses, obs, struts, strict=True):
-        z = partial_measured_quantities(o, fraction)
-        ref, C, chi = refine_partial_pose(
-            pose, z, V, K, fraction, cfg.vertex_sigma_px, sig_dir, cfg
-        )
+        model = PartialImageModel.of(partial_measured_quantities(o, fraction), V, K, fraction, cfg)
+        ref, C, chi = refine_partial_pose(pose, model)
         w = width_chi2(st, ref, geometry, K, cfg)
         if not math.isfinite(w):
             w = width_chi2(st, pose, geometry, K, cfg)  # the refinement left the width check
         dim = (2 if fraction < 1 else 0) + (2 if cfg.strut_radius_m is not None else 0)
-        h = PartialHypothesis(pose, ref, C, chi + w, dim, det)
+        h = PartialHypothesis(pose, ref, C, chi + w, dim, model, w, det)
         range_m = float(np.linalg.norm(ref.apply(ctr[None])[0]))
         same = [
             i
@@ -1068,6 +1132,95 @@ def partial_hypotheses(
     )
 
 
+def quantity_hypotheses(
+    z: np.ndarray,
+    widths_px: np.ndarray | None,
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    fraction: float,
+    config: StrutDetectorConfig | None = None,
+    include: Rigid3 | None = None,
+) -> list[PartialHypothesis]:
+    """The consistent poses of measured quantities ``z`` (`partial_measured_quantities`:
+    ``p1, p2``, the strut directions and, ``fraction`` < 1, the stub lengths) with the three
+    strut widths ``widths_px`` (base, from P1, from P2; None: not checked), as
+    `detect_partial` verifies them and `partial_hypotheses` weighs them: each P3P solution
+    of ``p1, p2`` and the apex (where the two strut lines meet) whose camera is on the known
+    face, whose visible stub ends lie within ``max_end_chi`` sigmas of the measured ones and
+    whose widths agree. ``include``: a pose tried first besides the P3P solutions (the truth,
+    for noise-free analysis). No image: for analysis and tests on projections."""
+    cfg = StrutDetectorConfig() if config is None else config
+    if widths_px is None:
+        cfg = replace(cfg, strut_radius_m=None)
+    V = np.asarray(geometry.vertices_m, dtype=float)
+    z = np.asarray(z, dtype=float)
+    p1, p2 = z[0:2], z[2:4]
+    u1 = np.array([math.cos(z[4]), math.sin(z[4])])
+    u2 = np.array([math.cos(z[5]), math.sin(z[5])])
+    A = np.stack([u1, -u2], axis=1)
+    if abs(float(np.linalg.det(A))) < 1e-9:
+        return []
+    s1, _ = np.linalg.solve(A, p2 - p1)
+    apex = p1 + s1 * u1
+    e1, e2 = (p1 + z[6] * u1, p2 + z[7] * u2) if fraction < 1 else (apex, apex)
+    w = np.zeros(3) if widths_px is None else np.asarray(widths_px, dtype=float)
+
+    def strut(a: np.ndarray, b: np.ndarray, width: float) -> Strut:
+        length = float(np.linalg.norm(b - a))
+        return Strut(
+            point=a,
+            direction=(b - a) / max(length, 1e-12),
+            s0=0.0,
+            s1=length,
+            support_px=length,
+            residual_px=0.0,
+            width_px=float(width),
+        )
+
+    struts = (strut(p1, p2, w[0]), strut(p1, e1, w[1]), strut(p2, e2, w[2]))
+    obs = BracketObservation(p1_px=p1, p2_px=p2, p3_px=e2, p4_px=e1, sigma_px=cfg.min_sigma_px)
+    rays = np.c_[np.array([p1, p2, apex]), np.ones(3)] @ np.linalg.inv(K).T
+    rays = rays / rays[:, 2:3]
+    model = np.vstack([V, incentre(V)])
+    ctr = V.mean(axis=0)
+    poses: list[Rigid3] = []
+    found = [include] if include is not None else []
+    try:
+        roots = p3p_depths(rays, triangle_sides(V))
+    except (ValueError, np.linalg.LinAlgError, ZeroDivisionError):
+        roots = np.zeros((0, 3))
+    for d in roots:
+        cam = d[:, None] * rays
+        R, t = absolute_orientation(model, np.vstack([cam, incentre(cam)]))
+        found.append(Rigid3(R=R, t=t))
+    for cand in found:
+        range_m = float(np.linalg.norm(cand.apply(ctr[None])[0]))
+        if any(
+            _rotation_deg(cand, q) <= 1.0 and _pose_distance(cand, q, ctr)[1] <= 0.01 * range_m
+            for q in poses
+        ):
+            continue  # a repeated root
+        if cand is include or math.isfinite(
+            _verify(obs, struts, cand, geometry, K, fraction, cfg.strut_radius_m, cfg)[0]
+        ):
+            poses.append(cand)
+    n = len(poses)
+    return _weigh([(p, None) for p in poses], [obs] * n, [struts] * n, geometry, K, fraction, cfg)
+
+
+def exact_widths(
+    pose: Rigid3, geometry: BracketGeometry, K: np.ndarray, fraction: float, radius_m: float
+) -> np.ndarray:
+    """The three struts' apparent widths ``f 2 r / z`` [px] at the middle of their visible
+    parts (base, from P1, from P2)."""
+    V = np.asarray(geometry.vertices_m, dtype=float)
+    ends = np.array([V[0] + fraction * (V[2] - V[0]), V[1] + fraction * (V[2] - V[1])])
+    depth = pose.apply(np.vstack([V, ends]))[:, 2]
+    f = float(K[0, 0])
+    mid = [0.5 * (depth[0] + depth[1]), 0.5 * (depth[0] + depth[3]), 0.5 * (depth[1] + depth[4])]
+    return np.array([f * 2 * radius_m / z for z in mid])
+
+
 def noise_free_hypotheses(
     pose: Rigid3,
     geometry: BracketGeometry,
@@ -1075,58 +1228,15 @@ def noise_free_hypotheses(
     fraction: float,
     config: StrutDetectorConfig | None = None,
 ) -> list[PartialHypothesis]:
-    """Every pose the *exact* image of the bracket at ``pose`` admits, as `detect_partial`
-    verifies it, weighed as `partial_hypotheses` does: each P3P solution of the exact
-    ``p1, p2`` and apex whose camera is on the known face, whose visible stub ends lie within
-    ``max_end_chi`` sigmas of the exact ones and whose strut widths (exact, ``f 2 r / z``,
-    ``config.strut_radius_m``; None: not checked) agree; the truth first (its image_chi2 is
-    0). What no detector can do better than on one frame: noise-free projections, no image."""
+    """Every pose the *exact* image of the bracket at ``pose`` admits (`quantity_hypotheses`
+    of the noise-free quantities and widths; the strut widths checked when
+    ``config.strut_radius_m`` is set); the truth first (its image_chi2 is 0). What no
+    detector can do better than on one frame: noise-free projections, no image."""
     cfg = StrutDetectorConfig() if config is None else config
-    V = np.asarray(geometry.vertices_m, dtype=float)
-    ends_m = np.array([V[0] + fraction * (V[2] - V[0]), V[1] + fraction * (V[2] - V[1])])
-    px = project(pose, np.vstack([V, ends_m]), K)
-    depth = pose.apply(np.vstack([V, ends_m]))[:, 2]
-    f = float(K[0, 0])
+    z = partial_image_quantities(pose, geometry.vertices_m, K, fraction)
     r = cfg.strut_radius_m
-
-    def strut(a: int, b: int) -> Strut:
-        d = px[b] - px[a]
-        length = float(np.linalg.norm(d))
-        width = f * 2 * r / (0.5 * (depth[a] + depth[b])) if r is not None else 0.0
-        return Strut(
-            point=px[a],
-            direction=d / length,
-            s0=0.0,
-            s1=length,
-            support_px=length,
-            residual_px=0.0,
-            width_px=width,
-        )
-
-    far1, far2 = (3, 4) if fraction < 1 else (2, 2)
-    struts = (strut(0, 1), strut(0, far1), strut(1, far2))
-    obs = BracketObservation(
-        p1_px=px[0], p2_px=px[1], p3_px=px[far2], p4_px=px[far1], sigma_px=cfg.min_sigma_px
-    )
-    rays = np.c_[px[:3], np.ones(3)] @ np.linalg.inv(K).T
-    rays = rays / rays[:, 2:3]
-    model = np.vstack([V, incentre(V)])
-    poses: list[Rigid3] = [pose]
-    ctr = V.mean(axis=0)
-    range_m = float(np.linalg.norm(pose.apply(ctr[None])[0]))
-    for d in p3p_depths(rays, triangle_sides(V)):
-        cam = d[:, None] * rays
-        R, t = absolute_orientation(model, np.vstack([cam, incentre(cam)]))
-        cand = Rigid3(R=R, t=t)
-        if any(
-            _rotation_deg(cand, q) <= 1.0 and _pose_distance(cand, q, ctr)[1] <= 0.01 * range_m
-            for q in poses
-        ):
-            continue  # the truth, or a repeated root
-        if math.isfinite(_verify(obs, struts, cand, geometry, K, fraction, r, cfg)[0]):
-            poses.append(cand)
-    n = len(poses)
-    return _weigh([(p, None) for p in poses], [obs] * n, [struts] * n, geometry, K, fraction, cfg)
+    widths = None if r is None else exact_widths(pose, geometry, K, fraction, r)
+    return quantity_hypotheses(z, widths, geometry, K, fraction, cfg, include=pose)
 
 
 def _stubs_at(end: np.ndarray, base: Strut, cands: list[Strut], tol: float, n: int) -> list[Strut]:

@@ -64,6 +64,7 @@ from satpose.frontend.bracket_lines import (
     detect_struts,
     partial_candidates,
     partial_hypotheses,
+    refine_partial_pose,
 )
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
 from satpose.frontend.preprocess import Undistorter
@@ -274,7 +275,7 @@ def run_bracket(
                             det_cfg,
                             extra=[d for d in near if d.result is not None],
                         )
-                        labeller.step(fr.t_s, [_candidate(h) for h in hyps])
+                        labeller.step(fr.t_s, hypothesis_candidates(hyps))
                         step = len(labeller.t_s) - 1
                         pending[k] = (det, hyps, step, labeller.online_decision())
                         if overlay_every > 0 and k % overlay_every == 0:
@@ -342,22 +343,19 @@ def run_bracket(
             def reported(
                 det: StrutDetection, hyps: list[PartialHypothesis], d: Any
             ) -> tuple[StrutDetection, BracketResult | None, str]:
-                """The decided frame's detection and pose (solved with its covariance), or
-                the refusal."""
+                """The decided frame's detection and pose (with its covariance), or the
+                refusal."""
                 if d.candidate is None:
                     why = det.reason if not hyps else d.reason
                     return replace(det, observation=None, struts=None, result=None), None, why
-                chosen = hyps[d.candidate].detection
-                assert chosen is not None and chosen.observation is not None
-                assert chosen.result is not None
-                res = solve_bracket(
-                    chosen.observation,
-                    geo,
-                    K,
-                    replace(solver, prior_least_squares=True),
-                    prior_depths=chosen.result.depths_m,
-                )
-                return chosen, res, res.reason
+                chosen = hyps[d.candidate]
+                assert chosen.detection is not None
+                # the frame's own quantities, from the track's fitted pose: the per-frame
+                # maximum of the likelihood in the chosen labelling's basin
+                start = d.pose if d.pose is not None else chosen.refined
+                pose, cov, _ = refine_partial_pose(start, chosen.model)
+                res = BracketResult(pose=pose, covariance=cov, selected_by="sequence")
+                return chosen.detection, res, ""
 
             for k, (det, hyps, step, online) in pending.items():
                 fr = seq.frames[k]
@@ -488,9 +486,11 @@ def run_bracket(
     return summary
 
 
-def _candidate(h: PartialHypothesis) -> Any:
-    """A frame's consistent pose as the labeller weighs it: the refined pose with its
-    covariance, the misfit of the over-determined image quantities."""
+def hypothesis_candidate(h: PartialHypothesis, ref: object = None, group: int = -1) -> Any:
+    """A frame's consistent pose as `satpose.backend.labelling` weighs it: the frame's
+    measured quantities as a function of the pose (the fit's measurement), the refined pose
+    with its covariance (start, gates), the strut widths' misfit (2 dof with a known
+    radius)."""
     from satpose.backend.labelling import Candidate
     from satpose.frontend.measurements import PoseMeasurement, PoseMethod
 
@@ -498,9 +498,26 @@ def _candidate(h: PartialHypothesis) -> Any:
         pose=PoseMeasurement(
             left_cam_from_target=h.refined, covariance=h.covariance, method=PoseMethod.BRACKET
         ),
-        image_chi2=h.image_chi2,
-        image_dim=h.image_dim,
+        image=h.model,
+        image_chi2=h.width_chi2,
+        image_dim=h.image_dim - (h.model.dim - 6),
+        group=group,
+        ref=ref,
     )
+
+
+def hypothesis_candidates(hyps: list[PartialHypothesis]) -> list[Any]:
+    """`hypothesis_candidate` of each, those with the same measured quantities in one group
+    (`satpose.backend.labelling.Candidate.group`); ``ref`` is the hypothesis."""
+    groups: list[np.ndarray] = []
+    out = []
+    for h in hyps:
+        g = next((i for i, z in enumerate(groups) if np.array_equal(z, h.model.z)), None)
+        if g is None:
+            groups.append(h.model.z)
+            g = len(groups) - 1
+        out.append(hypothesis_candidate(h, ref=h, group=g))
+    return out
 
 
 def refusal_summary(frames: list[FrameMeasurements], first: int = 3) -> str:

@@ -21,6 +21,7 @@ from satpose.frontend.bracket_lines import (
     noise_free_hypotheses,
 )
 from satpose.frontend.measurements import PoseMeasurement, PoseMethod
+from satpose.tools.bracket import hypothesis_candidate
 
 K = np.array([[700.0, 0.0, 399.5], [0.0, 700.0, 299.5], [0.0, 0.0, 1.0]])
 # A non-isosceles bracket (sides 0.60 / 0.58 / 0.71 m) and an isosceles one.
@@ -67,14 +68,9 @@ def approach(
 
 
 def _candidate(h: PartialHypothesis) -> Candidate:
-    return Candidate(
-        pose=PoseMeasurement(
-            left_cam_from_target=h.refined, covariance=h.covariance, method=PoseMethod.BRACKET
-        ),
-        image_chi2=h.image_chi2,
-        image_dim=h.image_dim,
-        ref=h,
-    )
+    c = hypothesis_candidate(h, ref=h)
+    assert isinstance(c, Candidate)
+    return c
 
 
 def _angle_deg(a: Rigid3, b: Rigid3) -> float:
@@ -181,13 +177,13 @@ def test_fit_track_is_exact_on_a_constant_twist() -> None:
         for p in poses
     ]
     motion = LabellingConfig().motion
-    fit = fit_track(np.arange(6.0), meas, motion)
+    fit = fit_track(np.arange(6.0), [Candidate(pose=m) for m in meas], motion)
     prior = 0.5 * float(xi @ np.linalg.solve(first_twist_covariance(motion), xi))
     # the exact trajectory costs the prior term alone; the optimum trades a little of it
     assert 0.99 * prior < fit.error <= prior + 1e-9 and fit.dof == 30
     moved = exp(poses[3], np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]))
     meas[3] = PoseMeasurement(left_cam_from_target=moved, covariance=cov, method=PoseMethod.BRACKET)
-    assert fit_track(np.arange(6.0), meas, motion).error > prior + 1.0
+    assert fit_track(np.arange(6.0), [Candidate(pose=m) for m in meas], motion).error > prior + 1
 
 
 def test_bad_input() -> None:
