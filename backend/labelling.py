@@ -128,11 +128,10 @@ class LabellingConfig:
             candidate's covariance plus the track's last pose's and the motion's over the
             gap (a pose near a double P3P root is uncertain by tens of degrees in tilt).
         rival_deg, rival_rel: two tracks disagree at a frame when their poses there differ by
-            more than this (the frontend's rival distance: another labelling or P3P solution)
-        rival_chi2: ... and when the other pose lies outside the reported candidate's
-            covariance ellipsoid of this chi-square (6 dof; 16.8: 99 %): a second P3P
-            solution within the noise of the first is not another answer, it is the
-            measurement's own uncertainty (the covariance reported with the pose covers it).
+            more than this (the frontend's rival distance: another labelling or P3P
+            solution). Whatever the covariances: a second maximum of the likelihood 8-14 deg
+            away (a neighbouring P3P root) is not described by the first one's covariance,
+            and reporting either would be an error of that size.
         max_tracks: at most this many tracks are kept (the lowest costs).
         max_gap: a track is not continued over more than this many frames without a
             candidate in its gate.
@@ -151,7 +150,6 @@ class LabellingConfig:
     gate_chi2: float = 22.5
     rival_deg: float = 8.0
     rival_rel: float = 0.05
-    rival_chi2: float = 16.8
     max_tracks: int = 24
     max_gap: int = 3
 
@@ -498,41 +496,34 @@ class SequenceLabeller:
         i = max(i for i, f in enumerate(ks) if f < k)
         return predict(tr.fit.poses[i], tr.fit.twists[i], self.t_s[k] - self.t_s[ks[i]])
 
-    def _disagree(self, a: Rigid3, b: Rigid3 | None, cov: np.ndarray | None = None) -> bool:
-        """Whether ``b`` is another answer than ``a``: farther than the rival distance and
-        (with ``a``'s covariance) outside ``a``'s ``rival_chi2`` ellipsoid."""
+    def _disagree(self, a: Rigid3, b: Rigid3 | None) -> bool:
+        """Whether ``b`` is another answer than ``a``: farther than the rival distance."""
         if b is None:
             return True
         ang, dist = _distance(a, b, self.centre)
         rng = float(np.linalg.norm(a.apply(self.centre[None])[0]))
-        if not (ang > self.config.rival_deg or dist > self.config.rival_rel * rng):
-            return False
-        if cov is None:
-            return True
-        d = local_error(a, b)
-        return float(d @ np.linalg.solve(cov, d)) > self.config.rival_chi2
+        return ang > self.config.rival_deg or dist > self.config.rival_rel * rng
 
     def _rival(self, best: _Track, tr: _Track, k: int) -> bool:
         """Whether track ``tr`` gives another answer than ``best`` at frame ``k``: its pose
         there disagrees with ``best``'s, or it has none there (a gap or outside its span)
         and disagrees with ``best`` at a frame where both have one. A track that agrees
         wherever both have a pose (e.g. ``best`` without its last frame) is no rival."""
-        cov = self.candidates[k][best.picks[k]].pose.covariance
         mine = self._pose_at(best, k)
         assert mine is not None
         other = self._pose_at(tr, k)
         if other is not None and k in tr.picks:
-            return self._disagree(mine, other, cov)
-        if other is not None and self._disagree(mine, other, cov):
+            return self._disagree(mine, other)
+        if other is not None and self._disagree(mine, other):
             return True
-        for f, j in best.picks.items():
+        for f in best.picks:
             if f == k:
                 continue
             theirs = self._pose_at(tr, f)
             ours = self._pose_at(best, f)
             if theirs is None or ours is None:
                 continue
-            if self._disagree(ours, theirs, self.candidates[f][j].pose.covariance):
+            if self._disagree(ours, theirs):
                 return True
         return False
 
