@@ -150,7 +150,7 @@ class LabellingConfig:
     gate_chi2: float = 22.5
     rival_deg: float = 8.0
     rival_rel: float = 0.05
-    max_tracks: int = 24
+    max_tracks: int = 16
     max_gap: int = 3
 
     def __post_init__(self) -> None:
@@ -225,7 +225,8 @@ def fit_track(
         values.insert(V(i), np.asarray(twists[i], float))
         if i > 0:
             graph.add(constant_twist_factor(i - 1, i, float(t_s[i] - t_s[i - 1]), motion))
-    sol = levenberg_marquardt(graph, values, 50, 1e-8, 1e-10)
+    # a likelihood to 1e-6 (relative) is all a ratio test of 6.9 needs
+    sol = levenberg_marquardt(graph, values, 20, 1e-6, 1e-6)
     out = sol.values
     return TrackFit(
         float(sol.error),

@@ -184,7 +184,7 @@ def run_bracket(
     require_pose: bool = True,
     decision: str = "offline",
     labelling: Any = None,
-    predicted_searches: int = 3,
+    predicted_searches: int = 1,
 ) -> dict[str, Any]:
     """Run the bracket method on a mono (or stereo: left image only) sequence; see the module
     docstring for the files. Returns a summary (frames with a pose, RMS errors if truth).
