@@ -33,10 +33,8 @@ Validation seeds are only scored: no parameter was changed because of them. Usag
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import sys
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -45,36 +43,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import write_page
 
-from satpose.backend.labelling import LabellingConfig, SequenceLabeller
-from satpose.datasets.bracket_family import measured_points_b, render_bracket_sequence
-from satpose.datasets.geometry import Rigid3, matrix_to_rotvec
+from satpose.datasets.bracket_family import render_bracket_sequence
+from satpose.datasets.geometry import Rigid3
 from satpose.datasets.seed_split import TUNING_SEEDS, VALIDATION_SEEDS
-from satpose.datasets.sequence import load_sequence
-from satpose.frontend.bracket import BracketGeometry, project
-from satpose.frontend.bracket_lines import (
-    StrutDetectorConfig,
-    noise_free_hypotheses,
-    partial_pose_covariance,
-)
-from satpose.tools.bracket import hypothesis_candidates, run_bracket
+from satpose.frontend.bracket_lines import partial_pose_covariance
+from satpose.tools.bracket_score import score_sequence
 
 MAX_RANGE_M = 1.5
-MISLABEL_DEG = 20.0
-
-
-def _read_tum(path: Path) -> dict[float, Rigid3]:
-    out = {}
-    for line in path.read_text().splitlines():
-        if not line.strip() or line.startswith("#"):
-            continue
-        v = [float(x) for x in line.split()]
-        out[round(v[0], 6)] = Rigid3.from_quat_xyzw(np.array(v[4:8]), np.array(v[1:4]))
-    return out
-
-
-def _angle_diff(a: np.ndarray, b: np.ndarray) -> float:
-    """Signed angle from direction ``b`` to ``a`` [rad]."""
-    return math.atan2(float(a[0] * b[1] - a[1] * b[0]) * -1.0, float(a @ b))
 
 
 def measured_bound(
@@ -94,170 +69,36 @@ def measured_bound(
     return partial_pose_covariance(pose, V, K, fraction, sigma_px, sigma_rad, sigma_end_px)
 
 
-def _rivals(T: Rigid3, poses: list[Rigid3], V: np.ndarray) -> list[Rigid3]:
-    """The poses more than the detector's rival distance (8 deg or 5 % of the range at the
-    bracket's centroid) from ``T``."""
-    cfg = StrutDetectorConfig()
-    ctr = V.mean(axis=0)
-    range_m = float(np.linalg.norm(T.apply(ctr[None])[0]))
-    out = []
-    for p in poses:
-        dR = math.degrees(float(np.linalg.norm(matrix_to_rotvec(p.R @ T.R.T))))
-        dc = float(np.linalg.norm(p.apply(ctr[None])[0] - T.apply(ctr[None])[0]))
-        if dR > cfg.rival_deg or dc > cfg.rival_rel * range_m:
-            out.append(p)
-    return out
-
-
-def ambiguous_noise_free(T: Rigid3, V: np.ndarray, K: np.ndarray, fraction: float) -> bool:
-    """Whether the exact image of the bracket (``p1, p2``, the apex from the exact strut
-    lines) already fits a second pose: a P3P solution other than the truth (more than the
-    detector's rival distance away: 8 deg or 5 % of the range) with the camera on the front
-    face and its visible stub ends within the detector's 3 sigma (``3 px + 5 %`` of the stub)
-    of the exact ones (`noise_free_hypotheses` without the strut widths). Such a frame is
-    ambiguous whatever a single-frame detector does."""
-    hyps = noise_free_hypotheses(
-        T, BracketGeometry(vertices_m=V), K, fraction, StrutDetectorConfig(strut_radius_m=None)
-    )
-    return bool(_rivals(T, [h.pose for h in hyps], V))
-
-
-def decidable_noise_free(
-    seq_path: Path, labelling: LabellingConfig | None = None
-) -> tuple[list[bool], list[bool], int, list[float]]:
-    """What the decision over frames (`SequenceLabeller`) reports on the member's *exact*
-    images (every consistent pose of each frame from noise-free projections, weighed as the
-    detector's, strut widths included): per frame, reported offline, reported online, how
-    many reported poses are another answer than the truth (rival distance), and each frame's
-    offline log-likelihood ratio. The most a detector with this decision rule can report:
-    the exact data's ratio is the evidence noisy data give on average (the noise adds the
-    same chi-square to every track), so where it is below the threshold, noisy data do not
-    decide either."""
-    seq = load_sequence(seq_path)
-    assert seq.target is not None and seq.target.bracket is not None and seq.truth is not None
-    b = seq.target.bracket
-    V = np.array([b.P1, b.P2, b.P5])
-    K = seq.calibration.left.K
-    width = seq.target.extras.get("bracket_strut_width_m")
-    cfg = StrutDetectorConfig(strut_radius_m=None if width is None else float(width) / 2)
-    geo = BracketGeometry(vertices_m=V)
-    lab = SequenceLabeller(V.mean(axis=0), labelling)
-    truths, online = [], []
-    poses_on: list[Rigid3 | None] = []
-    for fr in seq.frames:
-        T = seq.truth.pose(seq.truth.row_of_frame(fr.index))
-        truths.append(T)
-        hyps = noise_free_hypotheses(T, geo, K, b.visible_fraction, cfg)
-        lab.step(fr.t_s, hypothesis_candidates(hyps))
-        d = lab.online_decision()
-        online.append(d.candidate)
-        poses_on.append(d.pose)
-    decisions = lab.decide()
-    offline = [d.candidate for d in decisions]
-    wrong = 0
-    for k, T in enumerate(truths):
-        wrong += sum(bool(_rivals(T, [p], V)) for p in (poses_on[k], decisions[k].pose) if p)
-    return (
-        [j is not None for j in offline],
-        [j is not None for j in online],
-        wrong,
-        [d.log_lr for d in decisions],
-    )
-
-
-def _mislabelled_pose(est: Rigid3, T: Rigid3, V: np.ndarray, K: np.ndarray) -> bool:
-    """A pose whose projected ``P1`` lies nearer the true image of ``P2`` than of ``P1`` (or
-    the reverse), or whose attitude error exceeds 20 deg."""
-    e = project(est, V[:2], K)
-    t = project(T, V[:2], K)
-    swapped = np.linalg.norm(e[0] - t[1]) < np.linalg.norm(e[0] - t[0]) or np.linalg.norm(
-        e[1] - t[0]
-    ) < np.linalg.norm(e[1] - t[1])
-    rot = math.degrees(float(np.linalg.norm(matrix_to_rotvec(est.R @ T.R.T))))
-    return bool(swapped or rot > MISLABEL_DEG)
-
-
-def score_sequence(seq_path: Path, run_dir: Path) -> dict:
-    """Per-frame rows of one member: range, pose or reason, errors, point residuals."""
-    seq = load_sequence(seq_path)
-    assert seq.target is not None and seq.target.bracket is not None and seq.truth is not None
-    b = seq.target.bracket
-    V = np.array([b.P1, b.P2, b.P5])
-    frac = b.visible_fraction
-    K = seq.calibration.left.K
-    start = time.process_time()
-    summary = run_bracket(
-        seq_path, run_dir, estimator="none", overlay_every=0, overwrite=True, require_pose=False
-    )
-    cpu = time.process_time() - start
-    poses = _read_tum(run_dir / "per_frame.tum")
-    online = _read_tum(run_dir / "per_frame_online.tum")
-    exact_off, exact_on, exact_wrong, exact_lr = decidable_noise_free(seq_path)
-    with open(run_dir / "points.csv") as fh:
-        points = {int(r["frame"]): r for r in csv.DictReader(fh)}
-    rows = []
-    model = measured_points_b(V, frac)  # P1, P2 and the visible ends (target frame)
-    for k, fr in enumerate(seq.frames):
-        T = seq.truth.pose(seq.truth.row_of_frame(fr.index))
-        rng_m = float(np.linalg.norm(T.apply(model).mean(axis=0)))
-        r = points[fr.index]
-        est = poses.get(round(fr.t_s, 6))
-        est_on = online.get(round(fr.t_s, 6))
-        row: dict = {
-            "seed": seq_path.name,
-            "frame": fr.index,
-            "range_m": rng_m,
-            "T": T,
-            "ambiguous_exact": ambiguous_noise_free(T, V, K, frac),
-            "decidable_exact": exact_off[k],
-            "decidable_exact_online": exact_on[k],
-            "exact_lr": exact_lr[k],
-            "online": est_on is not None,
-            "online_mislabelled": est_on is not None and _mislabelled_pose(est_on, T, V, K),
-        }
-        if est is None:
-            row["reason"] = r["reason"].split(":")[0].split(" (")[0] or "no pose"
-        else:
-            p = np.array([float(r[k]) for k in "p1_x p1_y p2_x p2_y p3_x p3_y p4_x p4_y".split()])
-            p = p.reshape(4, 2)
-            true_px = project(T, model, K)  # P1, P2, end on P1P5, end on P2P5
-            apex = project(T, V[2:3], K)[0]
-            mislabel_pts = np.linalg.norm(p[0] - true_px[1]) < np.linalg.norm(
-                p[0] - true_px[0]
-            ) or np.linalg.norm(p[1] - true_px[0]) < np.linalg.norm(p[1] - true_px[1])
-            e_rot = matrix_to_rotvec(est.R @ T.R.T)  # camera-frame rotation error
-            e_pos = est.t - T.t
-            row.update(
-                e_rot_deg=np.degrees(e_rot),
-                e_pos_m=e_pos,
-                mislabelled=bool(mislabel_pts or np.degrees(np.linalg.norm(e_rot)) > MISLABEL_DEG),
-                # residuals per coordinate: p1, p2 (2 each), p4 and p3 across their true struts
-                resid=[*(p[0] - true_px[0]), *(p[1] - true_px[1])],
-                dtheta=[
-                    _angle_diff(p[3] - p[0], apex - true_px[0]),
-                    _angle_diff(p[2] - p[1], apex - true_px[1]),
-                ],
-                dend=[
-                    float(np.linalg.norm(p[3] - p[0]) - np.linalg.norm(true_px[2] - true_px[0])),
-                    float(np.linalg.norm(p[2] - p[1]) - np.linalg.norm(true_px[3] - true_px[1])),
-                ]
-                if frac < 1
-                else [],
-            )
-        rows.append(row)
-    return {
-        "rows": rows,
-        "fraction": frac,
-        "V": V,
-        "K": K,
-        "cpu_s": cpu,
-        "summary": summary,
-        "exact_wrong": exact_wrong,
-    }
-
-
 def _fmt(v: float, nd: int = 1) -> str:
     return "-" if not np.isfinite(v) else f"{v:.{nd}f}"
+
+
+def per_seq_from_campaign(
+    folder: Path, seeds: list[int], frames: int, size: str
+) -> list[tuple[int, dict]]:
+    """The scores of ``seeds`` from a campaign's results.parquet (its ok ``pipeline:
+    bracket`` cells of ``bracket-random`` with these frames and size); a seed missing from
+    the table is an error naming it."""
+    from satpose.tools.bracket_score import score_from_json
+    from satpose.tools.campaign import read_results
+
+    df = read_results(folder)
+    if not len(df) or "bracket.score" not in df.columns:
+        raise SystemExit(f"{folder}: no bracket cells (pipeline: bracket) in the table")
+    ok = df[
+        (df["status"] == "ok")
+        & (df["scenario"] == "bracket-random")
+        & (df["frames"] == frames)
+        & (df["size"] == size)
+        & (df["estimator"] == "none")
+    ]
+    by_seed = {int(r["seed"]): r for r in ok.to_dict("records")}
+    missing = [s for s in seeds if s not in by_seed]
+    if missing:
+        raise SystemExit(
+            f"{folder}: no ok cell for seeds {missing} ({frames} frames, {size}, estimator none)"
+        )
+    return [(s, score_from_json(by_seed[s]["bracket.score"])) for s in seeds]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -271,19 +112,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", default="960x768")
     ap.add_argument("--root", type=Path, default=Path("runs/bench/bracket-family"))
     ap.add_argument("--out-dir", type=Path, default=Path("docs/results"))
+    ap.add_argument(
+        "--from-campaign",
+        type=Path,
+        metavar="DIR",
+        help="score the seeds from a campaign's results.parquet (benchmarks/campaigns/"
+        "bracket_family.yaml, same frames and size) instead of running them here",
+    )
     args = ap.parse_args(argv)
     w, h = (int(x) for x in args.size.split("x"))
     split = list(TUNING_SEEDS if args.split == "tuning" else VALIDATION_SEEDS)
     seeds = split[args.first : args.first + args.seeds]
-    per_seq = []
-    for seed in seeds:
-        seq = args.root / f"seed-{seed}"
-        if not (seq / "frames.csv").is_file():
-            print(f"rendering seed {seed}", flush=True)
-            render_bracket_sequence(seed, seq, frames=args.frames, size=(w, h), overwrite=True)
-        res = score_sequence(seq, args.root / f"run-{seed}")
-        per_seq.append((seed, res))
-        print(seed, res["summary"], flush=True)
+    if args.from_campaign is not None:
+        per_seq = per_seq_from_campaign(args.from_campaign, seeds, args.frames, f"{w}x{h}")
+    else:
+        per_seq = []
+        for seed in seeds:
+            seq = args.root / f"seed-{seed}"
+            if not (seq / "frames.csv").is_file():
+                print(f"rendering seed {seed}", flush=True)
+                render_bracket_sequence(seed, seq, frames=args.frames, size=(w, h), overwrite=True)
+            res = score_sequence(seq, args.root / f"run-{seed}")
+            per_seq.append((seed, res))
+            print(seed, res["summary"], flush=True)
 
     all_rows = [r for _, res in per_seq for r in res["rows"]]
     near = [r for r in all_rows if r["range_m"] < MAX_RANGE_M]
@@ -370,7 +221,9 @@ def main(argv: list[str] | None = None) -> int:
             f"Generated by `OPENBLAS_NUM_THREADS=1 python benchmarks/bracket_family.py --split "
             f"{args.split} --seeds {args.seeds}"
             + (f" --first {args.first}" if args.first else "")
-            + f" --frames {args.frames} --size {args.size}` "
+            + f" --frames {args.frames} --size {args.size}"
+            + (f" --from-campaign {args.from_campaign}" if args.from_campaign else "")
+            + "` "
             "(never hand-edited). Members: `datasets/bracket_family.py` (numpy ray caster), "
             f"seeds {seeds[0]}-{seeds[-1]}, {args.frames} frames each at 1 Hz, {args.size} "
             "(the paper's 10 mm / 12 um camera class at that size, mild radial distortion). "

@@ -9,6 +9,13 @@ loosely coupled), and CPU time per frame.
 Run from the repository root:
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/bracket_montecarlo.py [--runs 100] [--smooth-runs 20]
+
+or take the runs from the campaign benchmarks/campaigns/bracket_montecarlo.yaml (one run per
+cell, `satpose.tools.bracket_montecarlo.run_once`, the same code as here):
+
+    satpose campaign benchmarks/campaigns/bracket_montecarlo.yaml --out runs/campaigns/bracket-mc
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bracket_montecarlo.py --runs 100 --smooth-runs 10 \
+        --from-campaign runs/campaigns/bracket-mc
 """
 
 from __future__ import annotations
@@ -17,14 +24,13 @@ import argparse
 import math
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
-import cv2
 import numpy as np
 from _common import write_page  # benchmarks/_common.py (scripts run from the root)
 
-from satpose.backend import BackendConfig, MeasurementConfig, MotionConfig, make_estimator
 from satpose.datasets.bracket_paper import (
     PAPER_VERTICES_M,
     PAPER_VISIBLE_FRACTION,
@@ -32,8 +38,6 @@ from satpose.datasets.bracket_paper import (
     paper_times,
     paper_truth,
 )
-from satpose.datasets.geometry import Rigid3, matrix_to_rotvec
-from satpose.datasets.sequence import Calibration
 from satpose.frontend.bracket import (
     AntColonyConfig,
     BracketConfig,
@@ -43,7 +47,12 @@ from satpose.frontend.bracket import (
     pose_information_bound,
     simulate_observation,
     solve_bracket,
-    to_frame_measurements,
+)
+from satpose.tools.bracket_montecarlo import (
+    VERTEX_ERROR_M,
+    RunResult,
+    result_from_json,
+    run_once,
 )
 
 PAPER = {
@@ -51,149 +60,6 @@ PAPER = {
     1.0: ("< 6", "< 0.6", "3", "0.2"),
     0.5: ("< 2.5 (100-run abs.)", "< 0.05 (100-run mean)", "", ""),
 }
-VERTEX_ERROR_M = 0.010
-"""The paper's "vertex coordinate error 10 mm", read as 10 mm RMS 3-D error per vertex."""
-
-
-def backend_config() -> BackendConfig:
-    """Constant-twist smoother tuned to the scenario's known dynamics (docs/bracket.md)."""
-    return BackendConfig(
-        motion=MotionConfig(
-            # wobble: 1 deg at 8 s period -> ~0.011 rad/s^2 peak angular acceleration
-            angular_accel_noise_rad_s2_rthz=0.01,
-            # straight-line approach seen from the spinning body: |omega x v| ~ 0.02 m/s^2
-            linear_accel_noise_m_s2_rthz=0.02,
-        ),
-        measurements=MeasurementConfig(coupling="loose", robust="none"),
-    )
-
-
-@dataclass
-class RunResult:
-    t_s: np.ndarray
-    err: dict[str, np.ndarray]  # method -> (frames, 6) [rot rad (cam frame), pos m]
-    nees: np.ndarray
-    cpu: dict[str, list[float]]
-    fails: dict[str, int]
-    candidates: list[int]
-
-
-def error_vec(est: Rigid3, true: Rigid3) -> np.ndarray:
-    """``[rotation error (rad, rotvec of R_true R_est^T), position error (m)]``."""
-    return np.concatenate([matrix_to_rotvec(true.R @ est.R.T), est.t - true.t])
-
-
-def run_once(
-    sigma_px: float,
-    vertex_error_m: float,
-    seed: int,
-    ant: AntColonyConfig | None,
-    smooth: bool,
-    dt_s: float = 0.2,
-) -> RunResult:
-    rng = np.random.default_rng(seed)
-    cam = paper_camera()
-    K = cam.K
-    t_s = paper_times(dt_s)
-    truth = paper_truth(t_s)
-    sigma_v = vertex_error_m / math.sqrt(3.0)
-    true_vertices = PAPER_VERTICES_M + sigma_v * rng.standard_normal((3, 3))
-    geo = BracketGeometry(
-        vertices_m=PAPER_VERTICES_M,
-        vertex_sigma_m=sigma_v,
-        visible_fraction=PAPER_VISIBLE_FRACTION,
-    )
-    observations = [
-        simulate_observation(T, true_vertices, K, PAPER_VISIBLE_FRACTION, sigma_px, rng)
-        for T in truth
-    ]
-    n = len(t_s)
-    err = {}
-    cpu: dict[str, list[float]] = {"ours depth": [], "ours frame": [], "ant depth": []}
-    fails = {"ours": 0, "ant": 0}
-    nees = np.full(n, np.nan)
-    cands = []
-    e = np.full((n, 6), np.nan)
-    frames = []
-    prior = None
-    for i, (obs, T) in enumerate(zip(observations, truth, strict=True)):
-        c0 = time.process_time()
-        r = solve_bracket(obs, geo, K, prior_depths=prior)
-        cpu["ours frame"].append(time.process_time() - c0)
-        frames.append(to_frame_measurements(r, i, float(t_s[i])))
-        if r.pose is None or r.covariance is None:
-            fails["ours"] += 1
-            continue
-        prior = r.depths_m
-        cands.append(r.candidates)
-        e[i] = error_vec(r.pose, T)
-        # NEES in the right-perturbation tangent: xi = [Log(R^T R_true), R^T (t_true - t)]
-        xi = np.concatenate([matrix_to_rotvec(r.pose.R.T @ T.R), r.pose.R.T @ (T.t - r.pose.t)])
-        nees[i] = xi @ np.linalg.solve(r.covariance, xi)
-    err["ours per frame"] = e
-    # Reference with more information than the paper uses: the strut ends P3, P4 as known
-    # model points (exactly 1/5 along the struts) -> 4-point PnP (OpenCV, Levenberg-Marquardt),
-    # started from our per-frame pose.
-    v = PAPER_VERTICES_M
-    f = PAPER_VISIBLE_FRACTION
-    model4 = np.array([v[0], v[1], v[1] + f * (v[2] - v[1]), v[0] + f * (v[2] - v[0])])
-    e = np.full((n, 6), np.nan)
-    for i, (obs, T) in enumerate(zip(observations, truth, strict=True)):
-        m = frames[i].pose
-        if m is None:
-            continue
-        start = m.left_cam_from_target
-        ok, rv, tv = cv2.solvePnP(
-            model4,
-            obs.points(),
-            K,
-            None,
-            rvec=cv2.Rodrigues(start.R)[0],
-            tvec=start.t.copy().reshape(3, 1),
-            useExtrinsicGuess=True,
-            flags=cv2.SOLVEPNP_ITERATIVE,
-        )
-        if ok:
-            e[i] = error_vec(Rigid3(R=cv2.Rodrigues(rv)[0], t=tv.ravel()), T)
-    err["reference: PnP with known strut ends"] = e
-    # CPU of the depth solve timed the way the colony's is below: its own pass over the frames,
-    # without the covariance (which would otherwise run between two solves).
-    prior = None
-    for obs in observations:
-        r = solve_bracket(obs, geo, K, BracketConfig(covariance=False), prior_depths=prior)
-        cpu["ours depth"].append(r.solve_cpu_s)
-        prior = r.depths_m if r.depths_m is not None else prior
-    if ant is not None:
-        e = np.full((n, 6), np.nan)
-        prior = None
-        acfg = BracketConfig(solver="ant-colony", covariance=False, ant=ant)
-        for i, (obs, T) in enumerate(zip(observations, truth, strict=True)):
-            r = solve_bracket(obs, geo, K, acfg, prior_depths=prior, rng=rng)
-            cpu["ant depth"].append(r.solve_cpu_s)
-            if r.pose is None:
-                fails["ant"] += 1  # keep the last prior: the paper tracks from the last solution
-                continue
-            prior = r.depths_m
-            e[i] = error_vec(r.pose, T)
-        err["ant colony per frame"] = e
-    if smooth:
-        calib = Calibration(left=cam)
-        for name in ("offline", "online"):
-            est = make_estimator(name, calib, backend_config())  # type: ignore[arg-type]
-            for fm in frames:
-                est.add(fm)
-            out = est.estimate()
-            e = np.full((n, 6), np.nan)
-            for k, fr in enumerate(out.frame):
-                e[int(fr)] = error_vec(out.left_cam_from_target[k], truth[int(fr)])
-            err[f"ours + {name} smoother"] = e
-            if name == "online":
-                filt = est.filtered()  # type: ignore[union-attr]
-                e = np.full((n, 6), np.nan)
-                for k, fr in enumerate(filt.frame):
-                    e[int(fr)] = error_vec(filt.left_cam_from_target[k], truth[int(fr)])
-                err["ours + online filter (causal)"] = e
-    return RunResult(t_s=t_s, err=err, nees=nees, cpu=cpu, fails=fails, candidates=cands)
 
 
 def information_bound(sigma_px: float, vertex_error_m: float, dt_s: float, known_ends: bool):
@@ -305,6 +171,46 @@ def summarise(results: list[RunResult], method: str, late: bool) -> dict[str, fl
     }
 
 
+def runs_from_campaign(
+    df: Any, sigma: float, vertex_error: float, args: argparse.Namespace
+) -> tuple[list[RunResult], list[RunResult]]:
+    """The runs of one (noise, vertex error) case from a campaign table, as this script makes
+    them: seeds 1000 + k for k < ``--runs`` with the paper's ant colony (dropped for k >=
+    ``--ant-runs``) and the smoothers (dropped for k >= ``--smooth-runs``: a cell runs them
+    on every seed; neither consumes the run's random numbers before the per-frame solvers),
+    and the 40-iteration colony's runs for k < ``--ant40-runs``."""
+    ok = df[
+        (df["status"] == "ok")
+        & (df["mc.sigma_px"] == sigma)
+        & (df["mc.vertex_error_m"] == vertex_error)
+        & (df["mc.dt_s"] == args.dt)
+    ]
+
+    def pick(iterations: int, smooth: bool, n: int) -> list[RunResult]:
+        sel = ok[(ok["mc.ant_iterations"] == iterations) & (ok["mc.smooth"] == smooth)]
+        by_seed = {int(r["seed"]): r["mc.result"] for r in sel.to_dict("records")}
+        missing = [1000 + k for k in range(n) if 1000 + k not in by_seed]
+        if missing:
+            raise SystemExit(
+                f"{args.from_campaign}: no ok bracket-mc cell for seeds {missing[:5]}... "
+                f"(sigma {sigma} px, vertex error {vertex_error} m, {iterations} ant "
+                f"iterations, smooth {smooth})"
+            )
+        return [result_from_json(by_seed[1000 + k]) for k in range(n)]
+
+    results = pick(AntColonyConfig().iterations, True, args.runs)
+    for k, r in enumerate(results):
+        if k >= args.ant_runs:
+            r.err.pop("ant colony per frame", None)
+            r.cpu["ant depth"] = []
+            r.fails["ant"] = 0
+        if k >= args.smooth_runs:
+            for name in [m for m in r.err if m.startswith("ours + ")]:
+                del r.err[name]
+    extra = pick(40, False, min(args.ant40_runs, args.runs))
+    return results, extra
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=int, default=100)
@@ -313,7 +219,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ant40-runs", type=int, default=3)
     ap.add_argument("--dt", type=float, default=0.2, help="frame interval [s]")
     ap.add_argument("--out", type=Path, default=Path("docs/results/bracket.md"))
+    ap.add_argument(
+        "--from-campaign",
+        type=Path,
+        metavar="DIR",
+        help="take the runs (seeds 1000 + k) from a campaign's results.parquet "
+        "(benchmarks/campaigns/bracket_montecarlo.yaml) instead of running them here",
+    )
     args = ap.parse_args(argv)
+    campaign = None
+    if args.from_campaign is not None:
+        from satpose.tools.campaign import read_results
+
+        campaign = read_results(args.from_campaign)
+        if not len(campaign) or "mc.result" not in campaign.columns:
+            raise SystemExit(f"{args.from_campaign}: no bracket-mc cells in the table")
     command = "OPENBLAS_NUM_THREADS=1 python benchmarks/bracket_montecarlo.py " + " ".join(
         sys.argv[1:] if argv is None else argv
     )
@@ -337,24 +257,27 @@ def main(argv: list[str] | None = None) -> int:
     for vertex_error in (VERTEX_ERROR_M, 0.0):
         for sigma in (1.0, 0.5):
             t0 = time.time()
-            results = []
-            for k in range(args.runs):
-                ant = paper_ant if k < args.ant_runs else None
-                results.append(
-                    run_once(
-                        sigma,
-                        vertex_error,
-                        1000 + k,
-                        ant,
-                        smooth=k < args.smooth_runs,
-                        dt_s=args.dt,
+            if campaign is not None:
+                results, extra = runs_from_campaign(campaign, sigma, vertex_error, args)
+            else:
+                results = []
+                for k in range(args.runs):
+                    ant = paper_ant if k < args.ant_runs else None
+                    results.append(
+                        run_once(
+                            sigma,
+                            vertex_error,
+                            1000 + k,
+                            ant,
+                            smooth=k < args.smooth_runs,
+                            dt_s=args.dt,
+                        )
                     )
-                )
-            # ant colony with 4x the iterations, on a few runs (accuracy vs cost)
-            extra = [
-                run_once(sigma, vertex_error, 1000 + k, long_ant, smooth=False, dt_s=args.dt)
-                for k in range(min(args.ant40_runs, args.runs))
-            ]
+                # ant colony with 4x the iterations, on a few runs (accuracy vs cost)
+                extra = [
+                    run_once(sigma, vertex_error, 1000 + k, long_ant, smooth=False, dt_s=args.dt)
+                    for k in range(min(args.ant40_runs, args.runs))
+                ]
             for r, x in zip(results, extra, strict=False):
                 r.err["ant colony 40 iterations"] = x.err["ant colony per frame"]
                 r.cpu["ant40 depth"] = x.cpu["ant depth"]

@@ -20,20 +20,19 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 from _common import ensure_rendered, write_page  # benchmarks/_common.py (scripts run from the root)
 
 from satpose.datasets.sequence import Sequence, load_sequence
-from satpose.frontend.conics import circle_to_conic, conic_to_ellipse
-from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
+from satpose.frontend.pipeline import FrontendConfig
 from satpose.frontend.pose import PoseConfig
-from satpose.tools.metrics import (
-    RANGE_BANDS_M,
-    band_label,
-    band_mask,
-    pose_errors,
-    relative_errors,
+from satpose.tools.frontend_score import (
+    pose_stats,
+    ring_stats,
+    run_frontend,
+    score_from_columns,
+    timing_stats,
 )
+from satpose.tools.metrics import RANGE_BANDS_M, band_label
 
 DEFAULT = ["paper-docking", "close-approach", "tumble"]
 PAPER = {"7-3 m": (1.74, 0.94), "7-5 m": (2.29, 1.14), "5-3 m": (1.19, 0.73)}
@@ -41,97 +40,29 @@ PAPER = {"7-3 m": (1.74, 0.94), "7-5 m": (2.29, 1.14), "5-3 m": (1.19, 0.73)}
 
 def run(seq: Sequence, method: str) -> tuple[list, list[float], list[float]]:  # type: ignore[type-arg]
     """Frontend over the sequence: measurements, wall and CPU time per frame [ms]."""
-    fe = StereoFrontend(seq.calibration, FrontendConfig(pose=PoseConfig(method=method)))
-    out, wall, cpu = [], [], []
-    for frame in seq:
-        left, right = frame.left(), frame.right()  # reading PNGs is not the frontend's time
-        t0, c0 = time.perf_counter(), time.process_time()
-        out.append(fe.process(frame.index, frame.t_s, left, right))
-        wall.append((time.perf_counter() - t0) * 1000.0)
-        cpu.append((time.process_time() - c0) * 1000.0)
-    return out, wall, cpu
+    return run_frontend(seq, FrontendConfig(pose=PoseConfig(method=method)))
 
 
-def ring_stats(seq: Sequence, results: list) -> dict[str, float]:  # type: ignore[type-arg]
-    calib = seq.calibration
-    assert seq.truth is not None and seq.target is not None and seq.target.ring is not None
-    errs, wrong, found = [], 0, 0
-    for i, m in enumerate(results):
-        if m.ring is None:
-            continue
-        found += 1
-        T = seq.truth.pose(i)
-        for e in m.ring.ellipses:
-            cam = calib.camera(e.camera.value)
-            cam_from_target = T if e.camera.value == "left" else calib.right_from_left @ T
-            true = conic_to_ellipse(
-                circle_to_conic(cam.K, cam_from_target, seq.target.ring.radius_m)
-            )
-            d = float(np.linalg.norm(e.center_px - true.center))
-            axes = float(np.abs(e.axes_px - [true.a, true.b]).max())
-            errs.append(d)
-            wrong += int(d > 2.0 or axes > 2.0)
-    e = np.array(errs) if errs else np.array([np.nan])
-    return {
-        "frames": len(results),
-        "found": found,
-        "rate": found / len(results),
-        "centre_median_px": float(np.median(e)),
-        "centre_p95_px": float(np.percentile(e, 95)),
-        "wrong_ellipses": wrong,
-    }
+def rows_from_campaign(folder: Path) -> list[dict[str, object]]:
+    """The rows of this benchmark from a campaign's results.parquet (its ``estimator:
+    frontend`` cells, ok ones): sequence name = the cell's perturb (or scenario/sequence)
+    label, method = the config's ``frontend.pose.method``), in the spec's cell order."""
+    import pandas as pd
 
+    from satpose.tools.campaign import read_results
 
-def pose_stats(seq: Sequence, results: list) -> dict[str, object]:  # type: ignore[type-arg]
-    assert seq.truth is not None
-    idx = [i for i, m in enumerate(results) if m.pose is not None]
-    est = [results[i].pose.left_cam_from_target for i in idx]
-    truth = [seq.truth.pose(i) for i in idx]
-    out: dict[str, object] = {"poses": len(idx), "frames": len(results)}
-    if len(idx) < 2:
-        return out
-    err = pose_errors(est, truth)
-    dt, dr = relative_errors(est, truth)
-    out.update(
-        pos_cm=100 * err.position_m.mean(),
-        rot_deg=err.rotation_deg.mean(),
-        rot_raw_deg=err.rotation_raw_deg.mean(),
-        offset_deg=err.offset_deg,
-        rel_pos_cm=100 * dt.mean(),
-        rel_rot_deg=dr.mean(),
-        rms_pos_cm=100 * np.sqrt(np.mean(err.position_m**2)),
-        rms_rot_deg=np.sqrt(np.mean(err.rotation_deg**2)),
-    )
-    bands = {}
-    for band in RANGE_BANDS_M:
-        m = band_mask(err.range_m, band)
-        if m.any():
-            bands[band_label(band)] = (
-                int(m.sum()),
-                100 * err.position_m[m].mean(),
-                err.rotation_deg[m].mean(),
-            )
-    out["bands"] = bands
-    methods: dict[str, int] = {}
-    for i in idx:
-        methods[results[i].pose.method.value] = methods.get(results[i].pose.method.value, 0) + 1
-    out["methods"] = methods
-    return out
-
-
-def timing_stats(results: list, wall: list[float], cpu: list[float]) -> dict[str, float]:  # type: ignore[type-arg]
-    stages: dict[str, list[float]] = {}
-    for m in results:
-        for k, v in m.timings_ms.items():
-            stages.setdefault(k, []).append(v)
-    out = {k: float(np.median(v)) for k, v in stages.items()}
-    out.update({f"{k}_runs": float(len(v)) for k, v in stages.items()})
-    out["frames"] = float(len(results))
-    out["total_median"] = float(np.median(wall))
-    out["total_p95"] = float(np.percentile(wall, 95))
-    out["cpu_median"] = float(np.median(cpu))
-    out["cpu_p95"] = float(np.percentile(cpu, 95))
-    return out
+    df = read_results(folder)
+    if not len(df) or "ring.rate" not in df.columns:
+        raise SystemExit(f"{folder}: no frontend cells (estimator: frontend) in the table")
+    rows = []
+    ok = df[(df["status"] == "ok") & (df["estimator"] == "frontend")]
+    for r in ok.sort_values("order").to_dict("records"):
+        score = score_from_columns(r)
+        name = r.get("perturb") if isinstance(r.get("perturb"), str) else None
+        name = name or (Path(str(r["sequence"])).name if pd.notna(r.get("sequence")) else None)
+        method = r["frontend_method"]
+        rows.append({"name": name or r.get("scenario"), "method": method, **score})
+    return rows
 
 
 def _stage_cell(t: dict[str, float], stage: str) -> str:
@@ -267,7 +198,17 @@ def main() -> None:
     parser.add_argument(
         "--title", default="Stereo frontend (seed 000): accuracy and speed", help="page title"
     )
+    parser.add_argument(
+        "--from-campaign",
+        type=Path,
+        metavar="DIR",
+        help="build the page from a campaign's results.parquet (its frontend cells) instead "
+        "of running the frontend here",
+    )
     args = parser.parse_args()
+    if args.from_campaign is not None:
+        write_page(args.out, markdown(rows_from_campaign(args.from_campaign), args))
+        return
     cv2.setNumThreads(1)
     paths = [Path(p) for p in args.sequences] or [ensure_rendered(n, args.data) for n in DEFAULT]
     rows = []

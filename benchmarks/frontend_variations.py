@@ -1,6 +1,11 @@
 """Frontend defaults on satellites, rigs and light they were not tuned on.
 
     python benchmarks/frontend_variations.py            # renders the variants if needed
+    python benchmarks/frontend_variations.py --from-campaign runs/campaigns/variants
+
+The second builds the same page from the campaign benchmarks/campaigns/frontend_variations.yaml
+(`satpose campaign ... --out runs/campaigns/variants`): the same variants, rendered and scored
+as its cells (``estimator: frontend``), read back from its results.parquet.
 
 The issue asks the frontend's defaults to hold on held-out sequences (other ring radii,
 component layouts, baselines, distortion, light). Each variant below changes one thing of
@@ -11,6 +16,7 @@ docs/results/frontend_variations.md. No frontend parameter is changed per varian
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 from pathlib import Path
@@ -66,12 +72,24 @@ def render_variant(name: str, overrides: dict[str, Any], root: Path) -> Path:
 
 
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--from-campaign", type=Path, metavar="DIR", help="a campaign folder")
+    ap.add_argument("--out", default="docs/results/frontend_variations.md")
+    args = ap.parse_args()
+    cmd = [sys.executable, str(Path(__file__).with_name("frontend.py")), "--out", args.out]
+    cmd += ["--title", "Stereo frontend (seed 000) on held-out variants"]
+    if args.from_campaign is not None:
+        cmd += [
+            "--generated-by",
+            f"python benchmarks/frontend_variations.py --from-campaign {args.from_campaign}",
+            "--from-campaign",
+            str(args.from_campaign),
+        ]
+        subprocess.run(cmd, check=True)
+        return
     root = Path("runs/bench/variants")
     paths = [render_variant(n, o, root) for n, o in VARIANTS.items()]
-    out = "docs/results/frontend_variations.md"
-    cmd = [sys.executable, str(Path(__file__).with_name("frontend.py")), "--out", out]
     cmd += ["--generated-by", "python benchmarks/frontend_variations.py"]
-    cmd += ["--title", "Stereo frontend (seed 000) on held-out variants"]
     subprocess.run([*cmd, *map(str, paths)], check=True)
 
 

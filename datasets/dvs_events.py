@@ -15,7 +15,8 @@ What differs from `satpose.datasets.events` (the ESIM model the tracker was deve
   the current intensity and starts a dead time, so near a star it shifts the levels of the
   events after it.
 - **Hot pixels**: ``hot_fraction`` of the pixels fire Poisson events at a log-normal rate
-  around ``hot_rate_hz``, mostly ON.
+  around ``hot_rate_hz``, mostly ON, through the same dead time (an event within
+  ``refractory_s`` of the pixel's last one is not fired).
 - **Timestamp jitter**: Gaussian ``timestamp_jitter_s`` on every event (then re-sorted,
   microsecond ticks).
 - **Optics**: a defocused star image, a uniform disk of radius ``defocus_radius_px``
@@ -188,6 +189,23 @@ def table_patches(
     return Y[ok] * width + X[ok], val[ok]
 
 
+def _dead_time_thinning(pix: np.ndarray, t: np.ndarray, tau: float) -> np.ndarray:
+    """Mask of the events ``(pix, t)`` a pixel fires with a dead time ``tau`` after each of
+    its fired events (drawn without one)."""
+    keep = np.ones(t.size, dtype=bool)
+    if tau <= 0 or t.size < 2:
+        return keep
+    order = np.lexsort((t, pix))
+    ps, ts = pix[order].tolist(), t[order].tolist()
+    last_pix, last_t = -1, -math.inf
+    for k, (q, tk) in enumerate(zip(ps, ts, strict=True)):
+        if q == last_pix and tk - last_t < tau:
+            keep[order[k]] = False
+        else:
+            last_pix, last_t = q, tk
+    return keep
+
+
 def simulate_dvs_events(
     cat: StarCatalogue,
     attitude: Attitude,
@@ -303,9 +321,15 @@ def simulate_dvs_events(
         hot = rng.choice(npix, n_hot, replace=False)
         rate = sensor.hot_rate_hz * np.exp(0.7 * rng.standard_normal(n_hot))
         counts = rng.poisson(rate * (t1_s - t0_s))
-        out_t.append(rng.uniform(t0_s, t1_s, int(counts.sum())))
-        out_i.append(np.repeat(hot, counts))
-        out_p.append((rng.random(int(counts.sum())) < 0.85).astype(np.uint8))
+        t_hot = rng.uniform(t0_s, t1_s, int(counts.sum()))
+        i_hot = np.repeat(hot, counts)
+        p_hot = (rng.random(int(counts.sum())) < 0.85).astype(np.uint8)
+        # The same pixel circuit: an event within the dead time of the pixel's last one is
+        # not fired (a non-paralysable dead time: intervals tau + exponential).
+        alive = _dead_time_thinning(i_hot, t_hot, tau)
+        out_t.append(t_hot[alive])
+        out_i.append(i_hot[alive])
+        out_p.append(p_hot[alive])
     t = np.concatenate(out_t)
     i = np.concatenate(out_i)
     p = np.concatenate(out_p)

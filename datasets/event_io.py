@@ -7,9 +7,16 @@
   (Event Camera Dataset, Mueggler et al. 2017).
 - AEDAT4 (``.aedat4``, iniVation DV recordings): read and written with ``faery`` (its event
   dtype: ``t`` microseconds, ``x``, ``y``, ``on``); the first event stream of the file.
+- Prophesee / Metavision RAW (``.raw``: EVT 2.0, 2.1 and 3.0 encodings, told apart by the
+  file's header): read with ``evlib`` (its Rust decoders; checked against a real Prophesee
+  EVT3 recording, docs/stars.md). Not written (evlib writes HDF5 and text only).
+- Prophesee DAT (``.dat``, the older Metavision/ATIS CD layout: ``%`` header lines, one byte
+  event type and one byte event size, then little-endian records of ``uint32 t`` [us] and
+  ``uint32`` with x in bits 0-13, y in bits 14-27 and the polarity in bits 28-31): read
+  with numpy (no maintained reader on PyPI reads it; evlib does not).
 
 A recording folder holds one of them as ``events.h5`` (what satpose writes), ``events.hdf5``,
-``events.txt`` or ``events.aedat4`` (`find_events_file`).
+``events.txt``, ``events.aedat4``, ``events.raw`` or ``events.dat`` (`find_events_file`).
 
 Writers go to a temporary name and rename into place.
 """
@@ -151,8 +158,96 @@ def read_events_aedat4(path: str | Path) -> Events:
         raise SequenceError(path, "events", str(exc)) from None
 
 
+def read_events_raw(path: str | Path) -> Events:
+    """Read a Prophesee / Metavision ``.raw`` file (EVT 2.0, 2.1 or 3.0) with evlib."""
+    import logging
+
+    path = Path(path)
+    if not path.is_file():
+        raise SequenceError(path, None, "event file not found")
+    logging.getLogger("evlib").setLevel(logging.ERROR)  # its import warns about PyTorch
+    import evlib
+
+    try:
+        fmt = evlib.detect_format(str(path))
+        if not str(fmt[0]).upper().startswith("EVT"):
+            raise SequenceError(
+                path, None, f"not a Prophesee RAW file (its header reads as {fmt[0]})"
+            )
+        df = evlib.load_events(str(path)).collect()
+    except SequenceError:
+        raise
+    except Exception as exc:  # evlib raises OSError, ValueError and its own errors
+        raise SequenceError(path, None, f"not a readable Prophesee RAW file ({exc})") from None
+    try:
+        return Events(
+            t_us=df["t"].cast(int).to_numpy().astype(np.int64),
+            x=df["x"].to_numpy().astype(np.uint16),
+            y=df["y"].to_numpy().astype(np.uint16),
+            p=(df["polarity"].to_numpy() > 0).astype(np.uint8),
+        )
+    except EventError as exc:
+        raise SequenceError(path, "events", str(exc)) from None
+
+
+def write_events_dat(events: Events, path: str | Path, width: int, height: int) -> Path:
+    """Write a Prophesee DAT file (CD events; the layout in the module docstring)."""
+    header = f"% Data file containing CD events.\n% Version 2\n% Width {width}\n% Height {height}\n"
+    rec = np.zeros(len(events), dtype=[("t", "<u4"), ("d", "<u4")])
+    rec["t"] = events.t_us
+    rec["d"] = (
+        events.x.astype(np.uint32)
+        | (events.y.astype(np.uint32) << 14)
+        | (events.p.astype(np.uint32) << 28)
+    )
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(bytes([0x0C, 8]))  # event type: CD; event size: 8 bytes
+            f.write(rec.tobytes())
+
+    return atomic_write(path, write)
+
+
+def read_events_dat(path: str | Path) -> Events:
+    """Read a Prophesee DAT file of CD events (module docstring)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SequenceError(path, None, "event file not found")
+    data = path.read_bytes()
+    i = 0
+    while i < len(data) and data[i : i + 1] == b"%":
+        j = data.find(b"\n", i)
+        if j < 0:
+            raise SequenceError(path, None, "header line without an end")
+        i = j + 1
+    if len(data) < i + 2:
+        raise SequenceError(path, None, "no event type and size after the header")
+    size = data[i + 1]
+    if size != 8:
+        raise SequenceError(path, "event size", f"expected 8 bytes per event, got {size}")
+    body = data[i + 2 :]
+    if len(body) % 8:
+        raise SequenceError(
+            path, None, f"truncated: {len(body)} bytes is not a whole number of events"
+        )
+    rec = np.frombuffer(body, dtype=[("t", "<u4"), ("d", "<u4")])
+    d = rec["d"]
+    try:
+        return Events(
+            t_us=rec["t"].astype(np.int64),
+            x=(d & 0x3FFF).astype(np.uint16),
+            y=((d >> 14) & 0x3FFF).astype(np.uint16),
+            p=((d >> 28) > 0).astype(np.uint8),
+        )
+    except EventError as exc:
+        raise SequenceError(path, "events", str(exc)) from None
+
+
 def read_events(path: str | Path) -> Events:
-    """Read ``.h5``/``.hdf5``, ``.txt`` or ``.aedat4`` events by extension."""
+    """Read ``.h5``/``.hdf5``, ``.txt``, ``.aedat4``, ``.raw`` or ``.dat`` events by
+    extension."""
     path = Path(path)
     if path.suffix in (".h5", ".hdf5"):
         return read_events_h5(path)
@@ -160,10 +255,23 @@ def read_events(path: str | Path) -> Events:
         return read_events_txt(path)
     if path.suffix == ".aedat4":
         return read_events_aedat4(path)
-    raise SequenceError(path, None, "unknown event file type (expected .h5, .txt or .aedat4)")
+    if path.suffix == ".raw":
+        return read_events_raw(path)
+    if path.suffix == ".dat":
+        return read_events_dat(path)
+    raise SequenceError(
+        path, None, "unknown event file type (expected .h5, .txt, .aedat4, .raw or .dat)"
+    )
 
 
-EVENT_FILE_NAMES = ("events.h5", "events.hdf5", "events.txt", "events.aedat4")
+EVENT_FILE_NAMES = (
+    "events.h5",
+    "events.hdf5",
+    "events.txt",
+    "events.aedat4",
+    "events.raw",
+    "events.dat",
+)
 """The event file names a recording folder may hold, in the order they are looked for."""
 
 

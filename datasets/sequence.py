@@ -17,7 +17,9 @@ import os
 import shutil
 import struct
 import uuid
+from collections import deque
 from collections.abc import Iterator, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -319,11 +321,30 @@ def read_image(path: Path, camera: PinholeCamera) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def load_sequence(path: str | Path) -> Sequence:
-    """Open a sequence folder (format v1). Reads the small files now, images lazily.
+@dataclass(frozen=True, kw_only=True)
+class SequenceHeader:
+    """sequence.yaml and calib.yaml: what a sequence is before any of its frames.
+
+    Attributes:
+        root: the sequence folder.
+        name, kind, rate_hz, generator: from sequence.yaml.
+        calibration: from calib.yaml.
+    """
+
+    root: Path
+    name: str
+    kind: Kind
+    rate_hz: float
+    calibration: Calibration
+    generator: Mapping[str, Any] = field(default_factory=dict)
+
+
+def load_header(path: str | Path) -> SequenceHeader:
+    """Read sequence.yaml and calib.yaml only (a folder still being recorded has no complete
+    frames.csv yet; `load_sequence` reads the rest).
 
     Raises:
-        SequenceError: naming the file and field for every violation of the format.
+        SequenceError: naming the file and field.
     """
     root = Path(path)
     if not root.is_dir():
@@ -351,21 +372,33 @@ def load_sequence(path: str | Path) -> Sequence:
     generator = meta.get("generator") or {}
     if not isinstance(generator, dict):
         raise SequenceError(meta_path, "generator", "must be a mapping")
-
     calib = _read_calibration(root / "calib.yaml", kind)
-    frames = _read_frames(root, kind, calib)
+    return SequenceHeader(
+        root=root, name=name, kind=kind, rate_hz=rate, calibration=calib, generator=generator
+    )
+
+
+def load_sequence(path: str | Path) -> Sequence:
+    """Open a sequence folder (format v1). Reads the small files now, images lazily.
+
+    Raises:
+        SequenceError: naming the file and field for every violation of the format.
+    """
+    head = load_header(path)
+    root = head.root
+    frames = _read_frames(root, head.kind, head.calibration)
     truth = _read_truth(root / "groundtruth.csv", frames)
     target = _read_target(root / "target.yaml")
     return Sequence(
         root=root,
-        name=name,
-        kind=kind,
-        rate_hz=rate,
-        calibration=calib,
+        name=head.name,
+        kind=head.kind,
+        rate_hz=head.rate_hz,
+        calibration=head.calibration,
         frames=frames,
         truth=truth,
         target=target,
-        generator=generator,
+        generator=head.generator,
     )
 
 
@@ -431,6 +464,20 @@ def load_calibration(path: str | Path, kind: str = "mono") -> Calibration:
         SequenceError: naming the file and field.
     """
     return _read_calibration(Path(path), kind)
+
+
+def load_target(path: str | Path) -> TargetGeometry:
+    """target.yaml on its own (a user's target geometry before it joins a sequence).
+
+    Raises:
+        SequenceError: naming the file and field (also when the file is missing).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise SequenceError(p, None, "target file does not exist")
+    target = _read_target(p)
+    assert target is not None
+    return target
 
 
 def _read_calibration(path: Path, kind: str) -> Calibration:
@@ -755,6 +802,11 @@ class SequenceWriter:
         calibration: written to calib.yaml; images are checked against it.
         target: written to target.yaml if given.
         overwrite: replace an existing folder (only after the new one is complete).
+        png_compression: zlib level 0-9 of the PNGs (None: OpenCV's default, level 1 with the
+            RLE strategy, the fastest that compresses); any level is lossless; 0 stores the rows
+            unfiltered and uncompressed, the fastest and up to 8x larger (docs/results/import.md).
+        workers: PNGs encoded and written by this many threads (OpenCV releases the GIL);
+            `close` waits for them and raises the first failure.
     """
 
     def __init__(
@@ -768,8 +820,18 @@ class SequenceWriter:
         generator: Mapping[str, Any] | None = None,
         target: TargetGeometry | None = None,
         overwrite: bool = False,
+        png_compression: int | None = None,
+        workers: int = 1,
     ) -> None:
         self.path = Path(path)
+        if png_compression is not None and not 0 <= png_compression <= 9:
+            raise SatposeError(f"PNG compression must be 0-9, got {png_compression}")
+        if workers < 1:
+            raise SatposeError(f"workers must be >= 1, got {workers}")
+        self._png_params = png_params(png_compression)
+        self._pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
+        self._pending: deque[Future[None]] = deque()
+        self._max_pending = 4 * workers
         if kind not in ("stereo", "mono"):
             raise SequenceError(
                 self.path / "sequence.yaml", "kind", f"must be stereo or mono, got {kind!r}"
@@ -822,7 +884,16 @@ class SequenceWriter:
     def abort(self) -> None:
         """Discard everything written so far."""
         self._closed = True
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pending.clear()
         shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def _drain(self, keep: int) -> None:
+        """Wait for queued PNG writes until at most ``keep`` are pending (re-raising the
+        first failure)."""
+        while len(self._pending) > keep:
+            self._pending.popleft().result()
 
     def add_frame(
         self,
@@ -914,14 +985,20 @@ class SequenceWriter:
             )
         _check_size(path, a.shape[1], a.shape[0], camera)
         path.parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(str(path), a):
-            raise SequenceError(path, None, "could not write PNG")
+        if self._pool is None:
+            _imwrite(path, a, self._png_params)
+            return
+        self._drain(self._max_pending - 1)
+        self._pending.append(self._pool.submit(_imwrite, path, a, self._png_params))
 
     def close(self) -> Path:
         """Write the small files and move the folder into place. Returns the final path."""
         if self._closed:
             return self.path
         try:
+            self._drain(0)
+            if self._pool is not None:
+                self._pool.shutdown(wait=True)
             if not self._frames:
                 raise SequenceError(
                     self.path / "frames.csv", None, "a sequence needs at least one frame"
@@ -951,6 +1028,23 @@ class SequenceWriter:
             raise
         self._closed = True
         return self.path
+
+
+def png_params(level: int | None) -> list[int]:
+    """``cv2.imwrite`` parameters of a PNG zlib level (None: OpenCV's defaults). Level 0 also
+    turns PNG's per-row filters off: without compression they only cost time (most of the
+    encoding; docs/results/import.md)."""
+    if level is None:
+        return []
+    params = [cv2.IMWRITE_PNG_COMPRESSION, int(level)]
+    if level == 0:
+        params += [cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
+    return params
+
+
+def _imwrite(path: Path, img: np.ndarray, params: list[int]) -> None:
+    if not cv2.imwrite(str(path), img, params):
+        raise SequenceError(path, None, "could not write PNG")
 
 
 def atomic_write(path: str | Path, write: Any) -> Path:
@@ -1029,10 +1123,14 @@ __all__ = [
     "GroundTruth",
     "Ring",
     "Sequence",
+    "SequenceHeader",
     "SequenceWriter",
     "TargetGeometry",
     "check_png_header",
+    "load_calibration",
+    "load_header",
     "load_sequence",
+    "load_target",
     "read_image",
     "write_sequence",
 ]

@@ -26,6 +26,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -168,6 +169,24 @@ class _Stage:
             self.timer.failed = self.name
 
 
+def read_stereo(
+    index: int, t_s: float, read: Callable[[], tuple[np.ndarray, np.ndarray]]
+) -> tuple[tuple[np.ndarray, np.ndarray] | None, FrameMeasurements | None]:
+    """Read a frame's two images with ``read()`` without raising: ``((left, right), None)``,
+    or ``(None, measurements)`` whose one failure note says why (``"image: <SatposeError>"``
+    for an unusable file, ``"image: internal error: ..."`` for anything else, e.g. a decoder
+    error on a corrupt file)."""
+    try:
+        return read(), None
+    except SatposeError as exc:
+        return None, FrameMeasurements(frame=index, t_s=t_s, failures=(f"image: {exc}",))
+    except Exception as exc:
+        log.debug("frame %d: reading the images raised", index, exc_info=True)
+        return None, FrameMeasurements(
+            frame=index, t_s=t_s, failures=(exception_failure("image", exc),)
+        )
+
+
 class StereoFrontend:
     """Turns stereo frames into measurements, keeping the tracking state between frames.
 
@@ -208,16 +227,11 @@ class StereoFrontend:
     def process_frame(self, frame: Frame) -> FrameMeasurements:
         """Measure one frame of a loaded sequence (an unreadable image is a failure, not an
         exception)."""
-        try:
-            left, right = frame.left(), frame.right()
-        except SatposeError as exc:
-            return FrameMeasurements(frame=frame.index, t_s=frame.t_s, failures=(f"image: {exc}",))
-        except Exception as exc:  # e.g. a decoder error on a corrupt file: a bug to report
-            log.debug("frame %d: reading the images raised", frame.index, exc_info=True)
-            return FrameMeasurements(
-                frame=frame.index, t_s=frame.t_s, failures=(exception_failure("image", exc),)
-            )
-        return self.process(frame.index, frame.t_s, left, right)
+        images, failed = read_stereo(frame.index, frame.t_s, lambda: (frame.left(), frame.right()))
+        if images is None:
+            assert failed is not None
+            return failed
+        return self.process(frame.index, frame.t_s, *images)
 
     def process(
         self, index: int, t_s: float, left: np.ndarray, right: np.ndarray

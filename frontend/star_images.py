@@ -195,7 +195,11 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
     sat = img >= sat_level if sat_level is not None else np.zeros(img.shape, bool)
 
     bg, noise, noise_med = _block_stats(img, c.block_px, 2)
-    noise = np.maximum(noise, max(noise_med * 0.5, 1e-6))
+    # An integer image resolves no noise below one count: a zero MAD means a quantised or
+    # clipped background (8-bit JPEGs with a black sky), not a noiseless one; without this
+    # floor every isolated count of 1 would be a detection or a hot pixel.
+    floor = 1.0 if np.issubdtype(raw.dtype, np.integer) else 1e-6
+    noise = np.maximum(noise, max(noise_med * 0.5, floor))
     sig = img - bg
 
     # Hot pixels: far above every neighbour. Replaced by the 3x3 median of the signal.
@@ -214,7 +218,8 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
     s = c.filter_sigma_px
     filt = cv2.GaussianBlur(sig, (0, 0), s)
     _, filt_noise, filt_med = _block_stats(filt, c.block_px, 4, zero_median=True)
-    filt_noise = np.maximum(filt_noise, 0.5 * filt_med)
+    # White noise of sigma n has sigma n / (2 sqrt(pi) s) after the Gaussian of sigma s.
+    filt_noise = np.maximum(filt_noise, max(0.5 * filt_med, floor / (2 * math.sqrt(math.pi) * s)))
     mask = ((filt > c.k_sigma * filt_noise) | sat).astype(np.uint8)
     n, labels = cv2.connectedComponents(mask, connectivity=8)
     pts = cv2.findNonZero(mask)
@@ -269,8 +274,11 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
     sigma = np.sqrt(c.sigma_floor_px**2 + (size / np.maximum(flux_snr, 1e-3)) ** 2)
     sigma = np.where(saturated, np.hypot(sigma, c.saturated_sigma_px), sigma)
     # Brightest first, by flux over local noise (the same order as flux where the noise is
-    # uniform; spots on a bright noisy foreground fall behind the sky's stars).
-    order = np.lexsort((-flux_snr, -(nsat[idx] * saturated)))[: c.max_stars]
+    # uniform; spots on a bright noisy foreground fall behind the sky's stars). Not by the
+    # flux's SNR: dividing by sqrt(area) put small faint spots before large bright stars,
+    # and the pattern search needs the catalogue's brightness order (a dense JPEG field
+    # with a comet was not identified).
+    order = np.lexsort((-f / loc_noise[idx], -(nsat[idx] * saturated)))[: c.max_stars]
     return ImageStars(
         px=np.column_stack([cx, cy])[order],
         flux=f[order],
@@ -474,10 +482,14 @@ class StarSolveConfig:
     """Lost in space on one image.
 
     Attributes:
-        fov_range_deg: horizontal field of view the camera may have, ``(min, max)`` [deg]
-            (edge to edge of the image width). The tetra3rs database covers patterns from
-            the short side at ``min`` to the diagonal at ``max``; a wide range costs time
-            and memory once per process (about 4 s for 7.8-15.5 deg, 35 s for 4-45 deg).
+        fov_ranges_deg: horizontal fields of view the camera may have, ``(min, max)``
+            pairs [deg] (edge to edge of the image width), tried in order, each with its
+            own tetra3rs database, until one gives a verified solution. A database covers
+            patterns from the short side at ``min`` to the diagonal at ``max``; a wide range
+            costs time and memory once per process (about 4 s for 10.4-12.4 deg, 10 s for
+            8-25 deg). The default, for an unknown camera, covers 3-70 deg in three bands,
+            the star-tracker band first (a star tracker's frame costs no more than with
+            that band alone); a known field is one pair.
         epoch_yr: epoch of the catalogue's proper motions (the observation date).
         fit_distortion: estimate the radial distortion ``k`` (`SkyCamera`).
         identify_stars: most spots (brightest first) handed to tetra3rs.
@@ -493,7 +505,7 @@ class StarSolveConfig:
         extraction: star extraction settings.
     """
 
-    fov_range_deg: tuple[float, float] = (8.0, 25.0)
+    fov_ranges_deg: tuple[tuple[float, float], ...] = ((8.0, 25.0), (25.0, 70.0), (3.0, 8.0))
     epoch_yr: float = 2026.0
     fit_distortion: bool = True
     identify_stars: int = 40
@@ -506,11 +518,13 @@ class StarSolveConfig:
     extraction: StarExtractionConfig = field(default_factory=StarExtractionConfig)
 
     def __post_init__(self) -> None:
-        lo, hi = self.fov_range_deg
-        if not (0.5 <= lo <= hi <= 90.0):
-            raise StarTrackerError(
-                f"field of view range must satisfy 0.5 <= min <= max <= 90 deg, got {lo}, {hi}"
-            )
+        if not self.fov_ranges_deg:
+            raise StarTrackerError("at least one field of view range needed")
+        for lo, hi in self.fov_ranges_deg:
+            if not (0.5 <= lo <= hi <= 90.0):
+                raise StarTrackerError(
+                    f"field of view range must satisfy 0.5 <= min <= max <= 90 deg, got {lo}, {hi}"
+                )
         if self.min_matches < 4 or self.identify_stars < 4:
             raise StarTrackerError("min_matches >= 4 and identify_stars >= 4 needed")
         if not (0 < self.max_false_alarm < 1) or self.match_radius_px <= 0:
@@ -653,16 +667,39 @@ def solve_stars(
     the beginning of the work to count in ``cpu_ms`` (default: now)."""
     c = config or StarSolveConfig()
     t0 = time.process_time() if start is None else start
-    w, h = stars.width, stars.height
     if len(stars) < 4:
         cpu_ms = (time.process_time() - t0) * 1e3
         return no_solution(f"too few star candidates ({len(stars)}, need 4)", stars, cpu_ms)
-    # The database and catalogue are built once per process (cached): not counted.
-    t_db = time.process_time()
-    scales = database_fov_range(c.fov_range_deg, w, h)
+    # One field-of-view band after the other; each band's database and catalogue are built
+    # once per process (cached) and not counted.
+    first: StarSolution | None = None
+    ranges = c.fov_ranges_deg
+    for fov_range in ranges:
+        t_db = time.process_time()
+        scales = database_fov_range(fov_range, stars.width, stars.height)
+        solver_database(scales[0], scales[1], c.epoch_yr)
+        solver_catalogue(scales[0], scales[1], c.epoch_yr)
+        t0 += time.process_time() - t_db
+        sol = _solve_band(stars, c, fov_range, t0)
+        if sol.status == "solved":
+            return sol
+        first = first or sol
+    assert first is not None
+    if len(ranges) == 1:
+        return first
+    bands = ", ".join(f"{lo:g}-{hi:g}" for lo, hi in ranges)
+    cpu_ms = (time.process_time() - t0) * 1e3
+    return no_solution(f"{first.reason} (also no solution for {bands} deg)", stars, cpu_ms)
+
+
+def _solve_band(
+    stars: ImageStars, c: StarSolveConfig, fov_range: tuple[float, float], t0: float
+) -> StarSolution:
+    """Identification, refinement and verification for one field-of-view range."""
+    w, h = stars.width, stars.height
+    scales = database_fov_range(fov_range, w, h)
     db = solver_database(scales[0], scales[1], c.epoch_yr)
     cat = solver_catalogue(scales[0], scales[1], c.epoch_yr)
-    t0 += time.process_time() - t_db
 
     def cpu() -> float:
         return (time.process_time() - t0) * 1e3
@@ -671,7 +708,7 @@ def solve_stars(
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
     rank = np.arange(n_id, 0, -1, dtype=float)  # brightness order only (saturated first)
     cent = np.column_stack([stars.px[:n_id] - centre, rank])
-    lo, hi = c.fov_range_deg
+    lo, hi = fov_range
     res = db.solve_from_centroids(
         cent,
         fov_estimate_deg=0.5 * (lo + hi),
@@ -719,7 +756,7 @@ def solve_stars(
         )
         pi, sj = pi[ref.inlier], sj[ref.inlier]
     elapsed = cpu()
-    verdict = _verify(c, stars, prow, pi, sj, ref.R, ref.camera, cat)
+    verdict = _verify(c, fov_range, stars, prow, pi, sj, ref.R, ref.camera, cat)
     if verdict:
         return no_solution(f"verification failed: {verdict}", stars, elapsed)
     r = cat.unit[prow[pi]]
@@ -753,6 +790,7 @@ def _false_alarm(stars: ImageStars, n_pred: int, m: int, radius: np.ndarray) -> 
 
 def _verify(
     c: StarSolveConfig,
+    fov_range: tuple[float, float],
     stars: ImageStars,
     prow: np.ndarray,
     pi: np.ndarray,
@@ -779,7 +817,7 @@ def _verify(
         if not rho >= c.min_rank_correlation:
             return f"spot brightness does not follow catalogue magnitude (rank corr. {rho:.2f})"
     fov = cam.fov_deg
-    lo, hi = c.fov_range_deg
+    lo, hi = fov_range
     if not (lo * 0.98 <= fov <= hi * 1.02):
         return f"field of view {fov:.3f} deg outside {lo}-{hi} deg"
     return ""
@@ -801,8 +839,11 @@ def check_attitude(
         ``(reason, matches, predicted)``: reason '' if the attitude is confirmed.
     """
     c = config or StarSolveConfig()
-    scales = database_fov_range(c.fov_range_deg, stars.width, stars.height)
+    fov = camera.fov_deg  # the band holding the camera's field (its catalogue), else the first
+    fov_range = next((r for r in c.fov_ranges_deg if r[0] <= fov <= r[1]), c.fov_ranges_deg[0])
+    scales = database_fov_range(fov_range, stars.width, stars.height)
     cat = solver_catalogue(scales[0], scales[1], c.epoch_yr)
     prow, ppx = _predict(cat, R, camera, float(np.max(cat.mag)))
     pi, sj = _match(ppx, stars.px, np.maximum(c.match_radius_px, 3 * stars.sigma_px))
-    return _verify(c, stars, prow, pi, sj, R, camera, cat), int(pi.size), int(prow.size)
+    verdict = _verify(c, fov_range, stars, prow, pi, sj, R, camera, cat)
+    return verdict, int(pi.size), int(prow.size)

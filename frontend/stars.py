@@ -46,6 +46,14 @@ from satpose.datasets.events import Events
 from satpose.datasets.geometry import matrix_to_rotvec, rotvec_to_matrix
 from satpose.datasets.sky import radec_to_unit
 from satpose.frontend.star_events import StreamStats, stream_noise
+from satpose.frontend.star_sensor import (
+    Refractory,
+    Thresholds,
+    estimate_thresholds,
+    pixel_intervals,
+    refractory_from_stream,
+    star_passes,
+)
 
 ARCSEC = math.pi / (180 * 3600)
 
@@ -227,6 +235,7 @@ class _SortedPasses:
     pixel_cut: np.ndarray  # per pixel: its first run is cut_start
     pixel_open: np.ndarray  # per pixel: its last run is open_end
     edge_s: float
+    ts: np.ndarray  # sorted times [s]
 
 
 def _sorted_passes(
@@ -292,6 +301,7 @@ def _sorted_passes(
         cut_start[run_of[first_ev]],
         open_end[run_of[last_ev]],
         float(edge_s),
+        ts,
     )
 
 
@@ -340,16 +350,101 @@ def stream_levels(
     The same results as ``ladder_levels(p, pixel_passes(...))`` and ``peak_on_events``, from
     one pixel sort and two scatters back to the events' order (the tracker's whole-stream
     step: at 16 deg/s, 2.9 M events, it is several times cheaper than the two calls)."""
+    lv = stream_levels_dead_time(t_s, x, y, p, 0.0, edge_s=edge_s)
+    return lv.levels, lv.peak
+
+
+@dataclass(frozen=True)
+class StreamLevels:
+    """What `stream_levels_dead_time` found (arrays in the events' order).
+
+    Attributes:
+        levels: `ladder_levels` (whole thresholds from the polarity sum; half-integer for
+            pixels anchored at their last event).
+        peak: `peak_on_events`.
+        dead_time: thresholds each event's level stands for beyond ``levels`` because of
+            the dead time (the log intensity's rise while the pixel was blind, `DEAD_TIME`
+            below), None without one.
+        refractory: the dead time measured from the stream (`star_sensor.estimate_refractory`),
+            None when it was given.
+        refractory_used_s: the dead time the levels account for [s].
+    """
+
+    levels: np.ndarray
+    peak: np.ndarray
+    dead_time: np.ndarray | None
+    refractory: Refractory | None
+    refractory_used_s: float
+
+
+REFRACTORY_INTERVALS = 200_000
+"""Most same-polarity intervals the dead time is measured from (`stream_levels_dead_time`)."""
+
+DEAD_TIME_MAX_GAIN = 1.0
+"""Most thresholds one interval's dead time adds to a level (`stream_levels_dead_time`):
+``tau / (dt - tau)`` is capped here, since an interval within the timestamp jitter of the
+dead time says only that the pixel was driven at least that fast."""
+
+
+def stream_levels_dead_time(
+    t_s: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    p: np.ndarray,
+    refractory_s: float | None,
+    use: np.ndarray | None = None,
+    edge_s: float | None = None,
+    hot_intervals_us: np.ndarray | None = None,
+) -> StreamLevels:
+    """`stream_levels` with the pixel's dead time in its levels.
+
+    A DVS pixel is blind for ``tau`` after an event and its reference is then reset to the
+    log intensity at that moment, so a pixel driven at log-intensity rate ``s`` fires one
+    event per ``C + s tau``, not per ``C``: the interval is ``dt = tau + C / s``, and the
+    step between two events of a run (same pixel and polarity) is ``C dt / (dt - tau)``.
+    Each event's level is its polarity sum plus the sum over its pixel's earlier in-run
+    intervals of ``tau / (dt - tau)`` (capped at `DEAD_TIME_MAX_GAIN`), signed like the
+    run; pixels anchored at their last event keep their anchor. ``refractory_s`` None: the
+    dead time is measured first (`star_sensor.refractory_from_stream`: the intervals of the
+    hot pixels, ``hot_intervals_us``, else the same-polarity intervals of the events in
+    ``use``) and used if identified, else 0."""
     n_ev = np.asarray(t_s).size
     if n_ev == 0:
-        return np.zeros(0), np.zeros(0, dtype=bool)
+        return StreamLevels(np.zeros(0), np.zeros(0, dtype=bool), None, None, 0.0)
     s = _sorted_passes(t_s, x, y, p, edge_s)
     offset = _level_offset(s.pixel_cut, s.pixel_open, s.net[s.last_ev])
     levels = np.empty(n_ev)
     levels[s.order] = s.net + offset[s.pix_id]
     peak = np.empty(n_ev, dtype=bool)
     peak[s.order] = _peaks_sorted(s.pix, s.pol)
-    return levels, peak
+    inner = ~s.new_run  # the event's predecessor is in its run
+    dt = np.zeros(n_ev)
+    dt[1:] = np.diff(s.ts)
+    found: Refractory | None = None
+    tau = refractory_s
+    if tau is None:
+        ok = inner.copy()
+        if use is not None:
+            u = np.asarray(use, bool)[s.order]
+            ok[1:] &= u[1:] & u[:-1]
+        iv = dt[ok]
+        if iv.size > REFRACTORY_INTERVALS:  # an even subset: plenty for a 200-bin histogram
+            iv = iv[:: -(-iv.size // REFRACTORY_INTERVALS)]
+        found = refractory_from_stream(np.rint(iv * 1e6), hot_intervals_us)
+        tau = found.refractory_s if found.identified else 0.0
+    if tau <= 0:
+        return StreamLevels(levels, peak, None, found, 0.0)
+    gain = np.zeros(n_ev)
+    gain[inner] = np.minimum(tau / np.maximum(dt[inner] - tau, 1e-12), DEAD_TIME_MAX_GAIN)
+    gain[inner & (dt <= tau)] = DEAD_TIME_MAX_GAIN
+    cs = np.cumsum(np.where(s.pol == 1, gain, -gain))
+    extra = cs - (cs[s.first_ev] - 0.0)[s.pix_id]  # from the pixel's first event
+    # Anchored pixels count from their last event.
+    anchored = np.isfinite(offset) & s.pixel_cut
+    extra = np.where(anchored[s.pix_id], extra - extra[s.last_ev][s.pix_id], extra)
+    dead = np.empty(n_ev)
+    dead[s.order] = extra
+    return StreamLevels(levels, peak, dead, found, float(tau))
 
 
 def matched_ladder_events(
@@ -815,6 +910,14 @@ class StarTrackerConfig:
         static_span_s, static_motion_px: a failed tracking output is retried with spans up
             to ``static_span_s`` (instead of ``lis_window_s``) while the stars move less
             than ``static_motion_px`` in it (`StarTracker.max_span_s`).
+        refractory_s: the pixels' dead time [s]; None: measured from the stream's
+            same-polarity intervals (`star_sensor.estimate_refractory`; 0 where not
+            identified).
+        dead_time_levels: (off by default: on the second model the fits preferred the plain
+            ladder, docs/stars.md) the spot fit's levels may count the log intensity's rise
+            during each dead time (`stream_levels_dead_time`: a DVS pixel resets its reference when
+            the dead time ends); whether they do is decided on the first
+            ``dead_time_outputs`` fits by their costs (`StarTracker._choose_dead_time`).
     """
 
     window_s: float = 0.005
@@ -848,6 +951,9 @@ class StarTrackerConfig:
     static_span_s: float = 0.2
     static_motion_px: float = 1.0
     psf_outputs: int = 20
+    refractory_s: float | None = None
+    dead_time_levels: bool = False
+    dead_time_outputs: int = 20
 
     def __post_init__(self) -> None:
         if not (0 < self.window_s <= self.lis_window_s):
@@ -864,6 +970,10 @@ class StarTrackerConfig:
             raise StarTrackerError("contrast_threshold > 0 and threshold_sigma >= 0 needed")
         if not self.psf_sigma_px > 0:
             raise StarTrackerError("psf_sigma_px must be positive")
+        if self.refractory_s is not None and not (
+            math.isfinite(self.refractory_s) and self.refractory_s >= 0
+        ):
+            raise StarTrackerError("refractory_s must be >= 0 (or None: measured)")
 
 
 @dataclass(frozen=True)
@@ -943,6 +1053,15 @@ class StarTracker:
         self.spot_rms_px: float | None = None  # measured (`_track_gated`), None until then
         self._label = np.zeros(0, dtype=np.int32)  # gate label image (`_track_gated`)
         self.stream_stats: StreamStats | None = None  # `run_event_tracker`'s noise findings
+        self.refractory: Refractory | None = None  # the dead time measured from the stream
+        self.refractory_used_s = 0.0  # the dead time the spot fit's levels account for
+        # Whether the pixels reset after their dead time (None: not decided yet;
+        # `_choose_dead_time`), and the two ladders' summed fit costs.
+        self.dead_time_reset: bool | None = None
+        self.dead_time_costs = np.zeros(2)
+        self._dead_seen = 0
+        # `run_event_tracker`'s stream without hot pixels and its noise-filter mask.
+        self.stream: tuple[Events, np.ndarray] | None = None
         # PSF sigma of the spot fit: the configured one until measured (`_measure_psf`).
         self.psf_sigma_px = c.psf_sigma_px
         self._psf_costs: np.ndarray | None = (
@@ -1115,6 +1234,18 @@ class StarTracker:
         log_f = math.log(_PSF_FACTORS[k]) + float(np.clip(step, -1, 1)) * math.log(2) / 4
         self.psf_sigma_px = c.psf_sigma_px * math.exp(log_f)
 
+    def _choose_dead_time(self, cost_reset: float, cost_plain: float) -> None:
+        """Whether the pixels reset their reference when the dead time ends (a DVS pixel:
+        each step is ``C`` plus the rise while blind, `stream_levels_dead_time`) or count
+        every crossing (a crossing while blind is lost but still moves the reference, as in
+        ESIM): over the first ``dead_time_outputs`` spot fits with a dead time the fit's
+        Huber costs (the same events) of both ladders are summed, and the lower one is used
+        from then on (`dead_time_reset`)."""
+        self.dead_time_costs += [cost_reset, cost_plain]
+        self._dead_seen += 1
+        if self._dead_seen >= self.config.dead_time_outputs:
+            self.dead_time_reset = bool(self.dead_time_costs[0] <= self.dead_time_costs[1])
+
     def _accept(self, sol: AttitudeSolution) -> AttitudeSolution:
         if sol.R is None:
             self.history.clear()
@@ -1158,6 +1289,7 @@ class StarTracker:
         levels: np.ndarray | None = None,
         selected: np.ndarray | None = None,
         blob_selected: np.ndarray | None = None,
+        dead_time: np.ndarray | None = None,
     ) -> AttitudeSolution:
         """Event tracker step: an attitude at the centre of ``[t0_s, t1_s)`` from ``events``
         (already sliced; they may start earlier, ``span_s`` before ``t1_s``).
@@ -1168,7 +1300,9 @@ class StarTracker:
         ``events``) and ``centroid="spot_fit"`` refined by `fit_moving_spots`; Wahba. Lost
         (or too few stars): lost-in-space on the window's blobs. ``selected`` (aligned with
         ``events``) marks the events the balanced centroids use (all if None),
-        ``blob_selected`` those the blobs use (``selected`` if None).
+        ``blob_selected`` those the blobs use (``selected`` if None). ``dead_time``
+        (aligned with ``events``): thresholds the dead time adds to each level
+        (`stream_levels_dead_time`), None: none.
         """
         start = time.process_time()
         c = self.config
@@ -1177,7 +1311,7 @@ class StarTracker:
         sol = AttitudeSolution(t_mid, None, None, "lost")
         if R_pred is not None and len(events):
             sol = self._track_gated(
-                events, t_mid, R_pred, span_s or (t1_s - t0_s), levels, selected
+                events, t_mid, R_pred, span_s or (t1_s - t0_s), levels, selected, dead_time
             )
         if sol.R is None:
             use = selected if blob_selected is None else blob_selected
@@ -1195,6 +1329,7 @@ class StarTracker:
         span_s: float,
         levels: np.ndarray | None = None,
         selected: np.ndarray | None = None,
+        dead_time: np.ndarray | None = None,
     ) -> AttitudeSolution:
         c = self.config
         cam = self.cam
@@ -1291,9 +1426,14 @@ class StarTracker:
         frac = (np.arange(li.size) * 0.6180339887498949) % 1.0
         use &= frac < c.fit_max_events / np.maximum(n_star, 1)[np.maximum(li, 0)]
         lvl = lvl_g[use]
+        # The log intensity each event stands for, in thresholds: the ladder level plus
+        # what the dead times before it added (a DVS pixel's reset), unless the stream's
+        # first fits preferred the plain ladder (`_choose_dead_time`).
+        with_dead = None if dead_time is None else lvl + dead_time[gi][use]
+        lvl_c = lvl if with_dead is None or self.dead_time_reset is False else with_dead
         li = li[use]
         top = np.zeros(int(ok.sum()))
-        np.maximum.at(top, li, lvl)
+        np.maximum.at(top, li, lvl_c)
         sigma_psf = self.psf_sigma_px
         g0 = float((2 * ndtr(0.5 / sigma_psf) - 1) ** 2)
         C = c.contrast_threshold
@@ -1303,13 +1443,13 @@ class StarTracker:
         # prediction (0.4 s of outputs) averages away.
         shared_rate = c.fit_rate_sigma_rad_s > 0 and span_s > 1.5 * c.window_s
 
-        def run_fit(sigma: float) -> SpotFit:
+        def run_fit(sigma: float, levels_c: np.ndarray = lvl_c) -> SpotFit:
             return fit_moving_spots(
                 li,
                 ex_f[use],
                 ey_f[use],
                 et[use] - t_mid,
-                lvl * C,
+                levels_c * C,
                 px_mid,
                 vel,
                 log_flux0,
@@ -1323,6 +1463,8 @@ class StarTracker:
         fit = run_fit(sigma_psf)
         if self._psf_costs is not None and int(fit.ok.sum()) >= c.min_stars:
             self._measure_psf(run_fit)
+        if with_dead is not None and self.dead_time_reset is None and fit.ok.sum() >= c.min_stars:
+            self._choose_dead_time(fit.cost, run_fit(sigma_psf, lvl).cost)
         # Fitted stars with the fit's own noise (mean of the two axes' variances, floored);
         # stars the fit could not take (fewer than 4 levelled events: most of them at
         # 0.1 deg/s) keep their moved balanced centroid with centroid_sigma_px.
@@ -1414,11 +1556,16 @@ def run_event_tracker(
         events, W, H, c.noise_window_s, c.hot_pixel_ratio, c.noise_min_share
     )
     tracker.stream_stats = noise
+    hot_dt: np.ndarray | None = None
     if noise.hot_pixels.size:
+        hot_ev = _subset(events, ~not_hot)
+        hot_dt = pixel_intervals(hot_ev.t_us, hot_ev.x, hot_ev.y)
         events, clean = _subset(events, not_hot), clean[not_hot]
+    tracker.stream = (events, clean)
     selected = np.ones(len(events), dtype=bool)
     acquire: np.ndarray | None = None  # acquisition's selection, if different
     levels: np.ndarray | None = None
+    dead: np.ndarray | None = None  # thresholds the dead time adds to each level
     fits = c.centroid == "spot_fit"
     if len(events) and c.event_selection == "matched":
         passes = pixel_passes(events.t_s, events.x, events.y, events.p)
@@ -1426,7 +1573,13 @@ def run_event_tracker(
         if fits:
             levels = ladder_levels(events.p, passes)
     elif len(events) and (fits or "drop_peak" in (c.event_selection, c.acquisition_selection)):
-        all_levels, peak = stream_levels(events.t_s, events.x, events.y, events.p)
+        sl = stream_levels_dead_time(
+            events.t_s, events.x, events.y, events.p, c.refractory_s, clean, hot_intervals_us=hot_dt
+        )
+        tracker.refractory = sl.refractory
+        if fits and c.dead_time_levels:
+            tracker.refractory_used_s, dead = sl.refractory_used_s, sl.dead_time
+        all_levels, peak = sl.levels, sl.peak
         levels = all_levels if fits else None
         if c.event_selection == "drop_peak":
             selected = ~peak
@@ -1440,15 +1593,19 @@ def run_event_tracker(
     if levels is None:
         events, acquire = _subset(events, selected), acquire[selected]
         selected = np.ones(len(events), dtype=bool)
+        dead = None
     prep_cpu_ms = 1e3 * (time.process_time() - cpu0)
 
-    def window(a: float, b: float) -> tuple[Events, np.ndarray, np.ndarray, np.ndarray | None]:
+    def window(
+        a: float, b: float
+    ) -> tuple[Events, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
         i0, i1 = np.searchsorted(events.t_us, [round(a * 1e6), round(b * 1e6)])
         ev = Events(
             t_us=events.t_us[i0:i1], x=events.x[i0:i1], y=events.y[i0:i1], p=events.p[i0:i1]
         )
         lv = None if levels is None else levels[i0:i1]
-        return ev, selected[i0:i1], acquire[i0:i1], lv
+        dt = None if dead is None else dead[i0:i1]
+        return ev, selected[i0:i1], acquire[i0:i1], lv, dt
 
     out: list[AttitudeSolution] = []
     t = t0_s
@@ -1459,7 +1616,7 @@ def run_event_tracker(
             if b > t1_s + 1e-9:
                 break
             span = tracker.integration_s()
-            ev, sel, acq, lv = window(max(t0_s, b - span), b)
+            ev, sel, acq, lv, dt = window(max(t0_s, b - span), b)
             if len(tracker.history) < 2:
                 # No rate yet to move centroids in time: the attitude is that of the span's
                 # centre (still later than the lost-in-space output before it); the
@@ -1469,7 +1626,7 @@ def run_event_tracker(
                 saved = list(tracker.history)
                 settled = tracker.rate_settled()
                 sol = tracker.track_events(
-                    ev, t, b, span_s=span, levels=lv, selected=sel, blob_selected=acq
+                    ev, t, b, span_s=span, levels=lv, selected=sel, blob_selected=acq, dead_time=dt
                 )
                 cpu = sol.cpu_ms
                 # Too few events (the stars nearly stop along track when the jitter cancels
@@ -1480,9 +1637,16 @@ def run_event_tracker(
                 while settled and sol.status != "tracking" and span < max_span:
                     span = min(2 * span, max_span)
                     tracker.history[:] = saved
-                    ev, sel, acq, lv = window(max(t0_s, b - span), b)
+                    ev, sel, acq, lv, dt = window(max(t0_s, b - span), b)
                     sol = tracker.track_events(
-                        ev, t, b, span_s=span, levels=lv, selected=sel, blob_selected=acq
+                        ev,
+                        t,
+                        b,
+                        span_s=span,
+                        levels=lv,
+                        selected=sel,
+                        blob_selected=acq,
+                        dead_time=dt,
                     )
                     cpu += sol.cpu_ms
                 sol = replace(sol, cpu_ms=cpu)
@@ -1493,7 +1657,7 @@ def run_event_tracker(
             b = t + c.lis_window_s * 2 ** min(fails, 3)
             if b > t1_s + 1e-9:
                 break
-            ev, _, acq, _ = window(t, b)
+            ev, _, acq, _, _ = window(t, b)
             sol = tracker.track_events(_subset(ev, acq), t, b)
         out.append(sol)
         fails = fails + 1 if sol.R is None else 0
@@ -1502,3 +1666,44 @@ def run_event_tracker(
     # to the outputs evenly.
     share = prep_cpu_ms / max(len(out), 1)
     return [replace(s, stream_cpu_ms=share) for s in out]
+
+
+def measure_thresholds(
+    tracker: StarTracker, sols: list[AttitudeSolution], max_events: int = 2_000_000
+) -> Thresholds | None:
+    """The sensor's mean ON and OFF contrast thresholds from the stream `run_event_tracker`
+    tracked (its first ``max_events`` events) and the attitudes it output
+    (`star_sensor.estimate_thresholds`: event counts of identified stars' passes against
+    their catalogue magnitudes, each interval counted with the dead time where the spot
+    fit's levels count it: pixels that reset, `StarTracker.dead_time_reset`).
+    None: no stream, fewer than two attitudes, or too few stars."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    if tracker.stream is None:
+        return None
+    ok = [s for s in sols if s.R is not None]
+    if len(ok) < 2:
+        return None
+    events, clean = tracker.stream
+    n = min(len(events), max_events)
+    t_ok = np.array([s.t_s for s in ok])
+    R_ok = np.array([s.R for s in ok])
+    slerp = Slerp(t_ok, Rotation.from_matrix(R_ok))
+
+    def attitude_at(t: np.ndarray) -> np.ndarray:
+        return np.asarray(slerp(np.clip(t, t_ok[0], t_ok[-1])).as_matrix())
+
+    tau = tracker.refractory_used_s if tracker.dead_time_reset else 0.0
+    passes = star_passes(events.t_us[:n], events.x[:n], events.y[:n], events.p[:n], clean[:n], tau)
+    inside = (passes.t_peak_s >= t_ok[0]) & (passes.t_peak_s <= t_ok[-1])
+    cam = tracker.cam
+    return estimate_thresholds(
+        passes.subset(inside),
+        attitude_at,
+        cam.fx,
+        cam.fy,
+        cam.cx,
+        cam.cy,
+        tracker.cat.unit,
+        tracker.cat.mag,
+    )

@@ -23,6 +23,7 @@ def test_wheel_contains_only_the_satpose_namespace(tmp_path: Path) -> None:
         assert f"satpose/{pkg}/__init__.py" in names
     assert "satpose/__init__.py" not in names  # a namespace package: nothing shadows others
     assert "satpose/datasets/sequence.py" in names and "satpose/tools/cli.py" in names
+    assert "satpose/datasets/importers/bag.py" in names  # the one subpackage
     entry_points = next(n for n in names if n.endswith("entry_points.txt"))
     text = zipfile.ZipFile(wheel).read(entry_points).decode()
     assert "satpose = satpose.tools.cli:main" in text

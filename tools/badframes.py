@@ -90,10 +90,13 @@ def measure_frames(
     stage: str,
     process: Callable[[Frame], FrameMeasurements],
     bad: BadFrames,
+    progress: Callable[[int, int], None] | None = None,
 ) -> list[FrameMeasurements]:
     """Every frame of ``seq`` through ``process`` (a frontend's ``process_frame``) with a
     progress bar: an exception is that frame's failure note (`guarded`, named ``stage``), and
-    each bad frame is named on the console with its image files (``bad``)."""
+    each bad frame is named on the console with its image files (``bad``).
+    ``progress(done, total)`` is called after each frame, outside the guard (so it may stop
+    the loop by raising)."""
     import sys
 
     from tqdm import tqdm
@@ -111,6 +114,8 @@ def measure_frames(
         files = tuple(p for p in (frame.left_path, frame.right_path) if p is not None)
         bad.note(frame.index, m.failures, files)
         results.append(m)
+        if progress is not None:
+            progress(len(results), len(seq))
     return results
 
 

@@ -38,6 +38,7 @@ import logging
 import math
 import shutil
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -185,6 +186,7 @@ def run_bracket(
     decision: str = "offline",
     labelling: Any = None,
     predicted_searches: int = 1,
+    progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Run the bracket method on a mono (or stereo: left image only) sequence; see the module
     docstring for the files. Returns a summary (frames with a pose, RMS errors if truth).
@@ -196,6 +198,9 @@ def run_bracket(
 
     A sequence without any pose is an error unless ``require_pose`` is False (benchmarks:
     then the trajectories are empty and points.csv holds every frame's reason).
+
+    ``progress(done, total)`` is called after each frame (it may stop the run by raising:
+    the output folder is then not written).
 
     The paper's view (a ``bracket`` entry): every frame's consistent poses go to
     `satpose.backend.labelling.SequenceLabeller` (settings ``labelling``, a
@@ -336,6 +341,8 @@ def run_bracket(
                 frames.append(FrameMeasurements(frame=fr.index, t_s=fr.t_s, failures=(why,)))
                 rows.append([fr.index, fr.t_s, *[math.nan] * 8, math.nan, why])
             bad.note(fr.index, frames[-1].failures, (fr.left_path,))
+            if progress is not None:
+                progress(k + 1, len(seq.frames))
         online_poses: list[tuple[float, Rigid3]] = []
         if labeller is not None:
             decisions = labeller.decide()

@@ -1,7 +1,11 @@
 """`satpose campaign SPEC.yaml --out DIR`: Monte Carlo and reprocessing campaigns on Dask.
 
 A campaign (`satpose.tools.campaign_spec`) is the product of axes; each cell is one task
-``render (synthetic, cached) -> run_pipeline -> evaluate_run`` on a Dask distributed cluster:
+``render (synthetic, cached) -> run -> score`` on a Dask distributed cluster, the run and the
+score by the cell's pipeline (`PIPELINES`): ``stereo`` (`run_pipeline` + `evaluate_run`, or
+with ``estimator: frontend`` the stereo frontend alone, `satpose.tools.frontend_score`),
+``spin`` (`run_spin` + `satpose.tools.spin_score`) or ``bracket`` (`run_bracket` via
+`satpose.tools.bracket_score`). The cluster is
 a `LocalCluster` (one single-threaded worker process per core) or an existing scheduler
 (``--scheduler tcp://HOST:8786``). Files (renders, run folders) are written on the worker's
 file system under DIR, so remote workers need DIR on a shared path; the results row of each
@@ -18,8 +22,8 @@ import importlib.util
 import logging
 import math
 import os
-import resource
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -33,9 +37,11 @@ from satpose.datasets.errors import SatposeError
 from satpose.datasets.sequence import atomic_write
 from satpose.tools.argtypes import positive_int
 from satpose.tools.campaign_spec import (
-    AXES,
+    BracketMember,
     CampaignSpec,
     Cell,
+    axis_order,
+    is_axis,
     load_spec,
     scenario_hash,
     scenario_of,
@@ -91,9 +97,72 @@ def _deadline_hook(start: float, limit_s: float, what: str) -> Callable[..., Non
     return check
 
 
-def _peak_rss_mb() -> float:
-    # Linux reports ru_maxrss in KiB: the worker process's peak so far.
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+class PeakMemory:
+    """The peak resident memory of this process while one task runs [MB].
+
+    A worker runs cells one after another, so the process's own peak (``ru_maxrss``) only
+    bounds a cell's from above. On Linux the kernel's high-water mark (``VmHWM`` in
+    /proc/self/status) is reset at the start (writing ``5`` to /proc/self/clear_refs) and
+    read at the end: the exact peak of this task, at no cost while it runs (the worker has one
+    thread, so nothing else runs in the process meanwhile). Where that reset is not possible,
+    a thread samples the resident size (psutil) every ``interval_s`` while the task runs: a
+    peak shorter than the interval can be missed. ``method`` says which one measured.
+    """
+
+    def __init__(self, interval_s: float = 0.02) -> None:
+        self.interval_s = interval_s
+        self.method = "vmhwm"
+        self._peak = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> PeakMemory:
+        try:
+            self._reset()
+        except (OSError, ValueError):
+            self.method = "sampled"
+            self._thread = threading.Thread(target=self._sample, daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+
+    @classmethod
+    def _reset(cls) -> None:
+        """Reset the kernel's high-water mark to the current resident size (Linux >= 4.0)."""
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        cls._vmhwm()
+
+    @staticmethod
+    def _vmhwm() -> int:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+        raise ValueError("no VmHWM line")
+
+    def _sample(self) -> None:
+        import psutil
+
+        proc = psutil.Process()
+        while True:
+            self._peak = max(self._peak, proc.memory_info().rss)
+            if self._stop.wait(self.interval_s):
+                return
+
+    @property
+    def peak_mb(self) -> float:
+        """The peak so far [MB] (1 MB = 2^20 bytes)."""
+        if self.method == "vmhwm":
+            try:
+                return self._vmhwm() / 2**20
+            except (OSError, ValueError):
+                return math.nan
+        return self._peak / 2**20
 
 
 def _worker_name() -> str:
@@ -106,27 +175,41 @@ def _worker_name() -> str:
 
 
 def render_cached(scenario: Any, folder: str, limit_s: float) -> dict[str, Any]:
-    """Render ``scenario`` into ``folder`` unless a complete render is there (the folder name
-    is the scenario's content hash). Never raises: returns ``{"path", "render_s", "error",
+    """Render ``scenario`` (a `Scenario`, or a `BracketMember` of the bracket family) into
+    ``folder`` unless a complete render is there (the folder name is the scenario's content
+    hash). Never raises: returns ``{"path", "render_s", "render_peak_rss_mb", "error",
     "status"}`` so Dask's retry is left for a worker that died."""
-    from satpose.datasets.render import render_sequence
-
     _pin_threads()
     out = Path(folder)
     start = time.perf_counter()
     if (out / "sequence.yaml").is_file():
         return {"path": folder, "render_s": 0.0, "status": "ok", "error": ""}
-    try:
-        render_sequence(
-            scenario, out, overwrite=True, progress=_deadline_hook(start, limit_s, "render")
-        )
-    except CellTimeout as exc:
-        return {"path": folder, "render_s": None, "status": "timeout", "error": str(exc)}
-    except Exception as exc:  # a cell's failure, recorded with its message
-        return {"path": folder, "render_s": None, "status": "failed", "error": _message(exc)}
+    check = _deadline_hook(start, limit_s, "render")
+    with PeakMemory() as memory:
+        try:
+            if isinstance(scenario, BracketMember):
+                from satpose.datasets.bracket_family import render_bracket_sequence
+
+                render_bracket_sequence(
+                    scenario.seed,
+                    out,
+                    frames=scenario.frames,
+                    size=scenario.size,
+                    overwrite=True,
+                    progress=check,
+                )
+            else:
+                from satpose.datasets.render import render_sequence
+
+                render_sequence(scenario, out, overwrite=True, progress=check)
+        except CellTimeout as exc:
+            return {"path": folder, "render_s": None, "status": "timeout", "error": str(exc)}
+        except Exception as exc:  # a cell's failure, recorded with its message
+            return {"path": folder, "render_s": None, "status": "failed", "error": _message(exc)}
     return {
         "path": folder,
         "render_s": time.perf_counter() - start,
+        "render_peak_rss_mb": memory.peak_mb,
         "status": "ok",
         "error": "",
     }
@@ -168,64 +251,214 @@ def metric_columns(results: dict[str, Any], main: str) -> dict[str, Any]:
     return out
 
 
-def run_cell(cell: Cell, rendered: dict[str, Any] | None, out_dir: str, limit_s: float) -> dict:
-    """One cell on a worker: run the pipeline on the (rendered or recorded) sequence and
-    evaluate it. Never raises for the cell's own failures: the returned row carries
-    ``status`` and ``error``. Files go to ``out_dir/cells/<cell id>/run``."""
+def run_cell(
+    cell: Cell,
+    rendered: dict[str, Any] | None,
+    out_dir: str,
+    limit_s: float,
+    order: int = -1,
+) -> dict:
+    """One cell on a worker: run its pipeline on the (rendered or recorded) sequence and score
+    it. Never raises for the cell's own failures: the returned row carries ``status`` and
+    ``error``. Files go to ``out_dir/cells/<cell id>/run``; ``order`` is the cell's place in
+    the spec (the ``order`` column: benchmarks list their rows in the spec's order)."""
+    _pin_threads()
+    row: dict[str, Any] = {"cell": cell.cell_id, **cell.axes, "order": order}
+    row.update(worker=_worker_name(), render_s=np.nan, run_s=np.nan, eval_s=np.nan)
+    t0 = time.perf_counter()
+    with PeakMemory() as memory:
+        try:
+            if rendered is not None:
+                row["render_s"] = rendered["render_s"]
+                row["render_peak_rss_mb"] = rendered.get("render_peak_rss_mb", np.nan)
+                if rendered["status"] != "ok":
+                    row.update(status=rendered["status"], error=f"render: {rendered['error']}")
+                    return _finish(row, t0, memory)
+                sequence = rendered["path"]
+            else:
+                sequence = "" if cell.sequence is None else str(cell.sequence)
+            row["sequence_path"] = sequence
+            run = Path(out_dir) / "cells" / cell.cell_id / "run"
+            row["run_path"] = str(run)
+            check = _deadline_hook(t0, limit_s, "run")
+            runner = {
+                "stereo": _frontend_cell if cell.axes.get("estimator") == "frontend" else _stereo,
+                "spin": _spin_cell,
+                "bracket": _bracket_cell,
+                "bracket-mc": _bracket_mc_cell,
+            }[cell.pipeline]
+            row.update(runner(cell, Path(sequence), run, check))
+            row.update(status="ok", error="")
+        except CellTimeout as exc:
+            row.update(status="timeout", error=str(exc))
+        except Exception as exc:  # a cell's failure, recorded with its message
+            row.update(status="failed", error=_message(exc))
+    return _finish(row, t0, memory)
+
+
+def _renders(cell: Cell) -> bool:
+    """Whether the cell needs a rendered sequence (synthetic, and not a simulation)."""
+    return cell.sequence is None and cell.pipeline != "bracket-mc"
+
+
+def _finish(row: dict[str, Any], t0: float, memory: PeakMemory) -> dict[str, Any]:
+    row["total_s"] = time.perf_counter() - t0
+    row["peak_rss_mb"] = memory.peak_mb
+    row["peak_rss_method"] = memory.method
+    return row
+
+
+Check = Callable[..., None]
+
+
+def _stereo(cell: Cell, sequence: Path, run: Path, check: Check) -> dict[str, Any]:
+    """``run_pipeline`` with the cell's estimator, then ``evaluate_run``: every trajectory's
+    metrics (`metric_columns`)."""
     from satpose.datasets.config import from_plain
     from satpose.tools.evaluate import evaluate_run, write_metrics
     from satpose.tools.pipeline import PipelineConfig, run_pipeline
 
-    _pin_threads()
-    row: dict[str, Any] = {"cell": cell.cell_id, **cell.axes}
-    row.update(worker=_worker_name(), render_s=np.nan, run_s=np.nan, eval_s=np.nan)
-    t0 = time.perf_counter()
-    try:
-        if rendered is not None:
-            row["render_s"] = rendered["render_s"]
-            if rendered["status"] != "ok":
-                row.update(status=rendered["status"], error=f"render: {rendered['error']}")
-                return _finish(row, t0)
-            sequence = rendered["path"]
-        else:
-            sequence = str(cell.sequence)
-        row["sequence_path"] = sequence
-        config = from_plain(PipelineConfig, cell.config, "config")
-        run = Path(out_dir) / "cells" / cell.cell_id / "run"
-        row["run_path"] = str(run)
-        estimator = cell.axes["estimator"]
-        start = time.perf_counter()
-        result = run_pipeline(
-            Path(sequence),
-            estimator,
-            run,
-            config,
-            overwrite=True,
-            progress=_deadline_hook(t0, limit_s, "run"),
-        )
-        row["run_s"] = time.perf_counter() - start
-        row["frames_with_pose"] = sum(m.pose is not None for m in result.measurements)
-        if time.perf_counter() - t0 > limit_s:
-            raise CellTimeout(f"run exceeded the time limit of {limit_s:g} s")
-        start = time.perf_counter()
-        metrics = evaluate_run(Path(sequence), run)
-        write_metrics(metrics, run, Path(sequence))
-        row["eval_s"] = time.perf_counter() - start
-        main = {"online": "online filtered"}.get(estimator, estimator)
-        if main not in metrics:
-            raise CampaignError(f"{estimator}: no estimate matched the ground truth (< 2 frames)")
-        row.update(metric_columns(metrics, main))
-        row.update(status="ok", error="")
-    except CellTimeout as exc:
-        row.update(status="timeout", error=str(exc))
-    except Exception as exc:  # a cell's failure, recorded with its message
-        row.update(status="failed", error=_message(exc))
-    return _finish(row, t0)
+    config = from_plain(PipelineConfig, cell.config, "config")
+    estimator = cell.axes["estimator"]
+    start = time.perf_counter()
+    result = run_pipeline(sequence, estimator, run, config, overwrite=True, progress=check)
+    row: dict[str, Any] = {"run_s": time.perf_counter() - start}
+    row["frames_with_pose"] = sum(m.pose is not None for m in result.measurements)
+    check()
+    start = time.perf_counter()
+    metrics = evaluate_run(sequence, run)
+    write_metrics(metrics, run, sequence)
+    row["eval_s"] = time.perf_counter() - start
+    main = {"online": "online filtered"}.get(estimator, estimator)
+    if main not in metrics:
+        raise CampaignError(f"{estimator}: no estimate matched the ground truth (< 2 frames)")
+    row.update(metric_columns(metrics, main))
+    return row
 
 
-def _finish(row: dict[str, Any], t0: float) -> dict[str, Any]:
-    row["total_s"] = time.perf_counter() - t0
-    row["peak_rss_mb"] = _peak_rss_mb()
+def _frontend_cell(cell: Cell, sequence: Path, run: Path, check: Check) -> dict[str, Any]:
+    """The stereo frontend alone (``config.frontend``), scored per frame against the truth
+    (`satpose.tools.frontend_score`: ring, pose and timing columns; ``est.pos_cm`` /
+    ``est.rot_deg`` are the per-frame pose's mean errors). Writes ``run/measurements.parquet``
+    and ``run/score.json``."""
+    import json
+
+    from satpose.datasets.config import from_plain, to_plain
+    from satpose.datasets.sequence import load_sequence
+    from satpose.tools.files import staged_output, write_measurements
+    from satpose.tools.frontend_score import (
+        pose_stats,
+        ring_stats,
+        run_frontend,
+        score_columns,
+        timing_stats,
+    )
+    from satpose.tools.pipeline import PipelineConfig
+
+    config = from_plain(PipelineConfig, cell.config, "config")
+    seq = load_sequence(sequence)
+    start = time.perf_counter()
+    results, wall, cpu = run_frontend(seq, config.frontend, progress=check)
+    row: dict[str, Any] = {"run_s": time.perf_counter() - start}
+    start = time.perf_counter()
+    score = {
+        "ring": ring_stats(seq, results),
+        "pose": pose_stats(seq, results),
+        "timing": timing_stats(results, wall, cpu),
+    }
+    with staged_output(run, True, marker="score.json", what="a frontend score") as stage:
+        write_measurements(results, stage / "measurements.parquet")
+        text = json.dumps(to_plain(score), indent=1, sort_keys=True)
+        (stage / "score.json").write_text(text, encoding="utf-8")
+    row["eval_s"] = time.perf_counter() - start
+    row["frames_with_pose"] = score["pose"]["poses"]
+    row["frontend_method"] = str(config.frontend.pose.method)
+    row.update(score_columns(score))
+    for metric in ("pos_cm", "rot_deg", "rel_pos_cm", "rel_rot_deg"):
+        row[f"est.{metric}"] = score["pose"].get(metric, np.nan)
+    return row
+
+
+def _spin_cell(cell: Cell, sequence: Path, run: Path, check: Check) -> dict[str, Any]:
+    """`run_spin` with the cell's `SpinConfig`, its windows scored against the true
+    ``|omega|`` per frame (`satpose.tools.spin_score`: ``spin.*`` columns)."""
+    from satpose.datasets.config import from_plain
+    from satpose.datasets.sequence import load_sequence
+    from satpose.frontend.spin import SpinConfig
+    from satpose.tools.spin_cli import run_spin
+    from satpose.tools.spin_score import spin_stats, stats_columns
+
+    config = from_plain(SpinConfig, cell.config, "config")
+    start = time.perf_counter()
+    result = run_spin(sequence, run, config, overwrite=True, progress=check)
+    row: dict[str, Any] = {"run_s": time.perf_counter() - start}
+    start = time.perf_counter()
+    truth = load_sequence(sequence).truth
+    if truth is None or truth.angular_velocity is None:
+        raise CampaignError(f"{sequence}: groundtruth.csv has no angular velocity to score")
+    truth_deg_s = np.degrees(np.linalg.norm(truth.angular_velocity, axis=1))
+    fits = [(k, s.fit) for k, s in enumerate(result.steps) if s.fit is not None]
+    stats = spin_stats(fits, truth_deg_s)
+    row["eval_s"] = time.perf_counter() - start
+    row["spin.truth_deg_s"] = float(np.mean(truth_deg_s))
+    row.update(stats_columns(stats))
+    return row
+
+
+def _bracket_cell(cell: Cell, sequence: Path, run: Path, check: Check) -> dict[str, Any]:
+    """`run_bracket` (the cell's estimator; ``config``: `StrutDetectorConfig`) on a bracket
+    sequence, each frame scored (`satpose.tools.bracket_score`): the whole score as JSON in
+    ``bracket.score``, and per-member numbers (``bracket.frames_with_pose``, RMS errors of
+    the correctly labelled frames, mislabelled frames) for a quick look."""
+    from satpose.datasets.config import from_plain
+    from satpose.frontend.bracket_lines import StrutDetectorConfig
+    from satpose.tools.bracket_score import score_sequence, score_to_json
+
+    detector = from_plain(StrutDetectorConfig, cell.config, "config")
+    start = time.perf_counter()
+    score = score_sequence(
+        sequence, run, estimator=cell.axes["estimator"], detector=detector, progress=check
+    )
+    row: dict[str, Any] = {"run_s": time.perf_counter() - start}
+    rows = score["rows"]
+    good = [r for r in rows if "e_pos_m" in r and not r["mislabelled"]]
+    row["frames_with_pose"] = sum("e_pos_m" in r for r in rows)
+    row["bracket.frames"] = len(rows)
+    row["bracket.mislabelled"] = sum(bool(r.get("mislabelled")) for r in rows)
+    row["bracket.ambiguous_exact"] = sum(bool(r["ambiguous_exact"]) for r in rows)
+    pos = [float(np.linalg.norm(r["e_pos_m"])) for r in good]
+    rot = [float(np.linalg.norm(r["e_rot_deg"])) for r in good]
+    row["bracket.pos_rms_mm"] = 1e3 * float(np.sqrt(np.mean(np.square(pos)))) if pos else np.nan
+    row["bracket.rot_rms_deg"] = float(np.sqrt(np.mean(np.square(rot)))) if rot else np.nan
+    row["est.pos_cm"] = row["bracket.pos_rms_mm"] / 10.0
+    row["est.rot_deg"] = row["bracket.rot_rms_deg"]
+    row["bracket.score"] = score_to_json(score)
+    return row
+
+
+def _bracket_mc_cell(cell: Cell, sequence: Path, run: Path, check: Check) -> dict[str, Any]:
+    """One Monte Carlo run of seed 002's final approach (`run_config` with the cell's seed and
+    `MonteCarloConfig`; no files): the whole `RunResult` as JSON in ``mc.result``, the
+    resolved config as ``mc.<field>``, and our per-frame solver's RMS errors for a quick
+    look. The time limit is checked once the run is done (a run takes about a second)."""
+    from dataclasses import asdict
+
+    from satpose.datasets.config import from_plain
+    from satpose.tools.bracket_montecarlo import MonteCarloConfig, result_to_json, run_config
+
+    config = from_plain(MonteCarloConfig, cell.config, "config")
+    start = time.perf_counter()
+    result = run_config(config, int(cell.axes["seed"]))
+    check()
+    row: dict[str, Any] = {"run_s": time.perf_counter() - start}
+    row.update({f"mc.{k}": v for k, v in asdict(config).items()})
+    e = result.err["ours per frame"]
+    pos = 1e3 * np.linalg.norm(e[:, 3:], axis=1)
+    rot = np.degrees(np.linalg.norm(e[:, :3], axis=1))
+    row["mc.ours_pos_rms_mm"] = float(np.sqrt(np.nanmean(pos**2)))
+    row["mc.ours_rot_rms_deg"] = float(np.sqrt(np.nanmean(rot**2)))
+    row["frames_with_pose"] = int(np.isfinite(pos).sum())
+    row["mc.result"] = result_to_json(result)
     return row
 
 
@@ -260,7 +493,7 @@ def read_results(out: Path) -> pd.DataFrame:
 
 def _write_table(rows: list[dict[str, Any]], path: Path) -> pd.DataFrame:
     df = pd.DataFrame(rows)
-    first = ["cell", *[a for a in AXES if a in df.columns], "status", "error"]
+    first = ["cell", *_axes(df), "status", "error"]
     df = df[first + [c for c in df.columns if c not in first]]
     for col in df.columns:  # a column mixing strings and numbers is written as strings
         if df[col].dtype == object:
@@ -355,13 +588,14 @@ def run_campaign(
         r for r in rows if r["cell"] in done or r["cell"] not in {c.cell_id for c in spec.cells}
     ]
     todo = [c for c in spec.cells if c.cell_id not in done]
+    order = {c.cell_id: k for k, c in enumerate(spec.cells)}
     skipped = len(spec.cells) - len(todo)
     table = out / RESULTS
     # Scenarios first, on the client: a perturbation value the scenario refuses fails its
     # cells without a task; the others are grouped by render.
     scenarios: dict[str, Any] = {}
     for cell in list(todo):
-        if cell.sequence is None:
+        if _renders(cell):
             try:
                 scenarios[cell.cell_id] = scenario_of(cell)
             except SatposeError as exc:
@@ -369,6 +603,7 @@ def run_campaign(
                     {
                         "cell": cell.cell_id,
                         **cell.axes,
+                        "order": order[cell.cell_id],
                         "status": "failed",
                         "error": f"perturb: {exc}",
                     }
@@ -392,7 +627,7 @@ def run_campaign(
             tag = hashlib.sha1(f"{outdir}|{cache.resolve()}".encode()).hexdigest()[:8]
             for cell in todo:
                 rendered = None
-                if cell.sequence is None:
+                if _renders(cell):
                     scenario = scenarios[cell.cell_id]
                     h = scenario_hash(scenario)
                     if h not in renders:
@@ -413,6 +648,7 @@ def run_campaign(
                         rendered,
                         outdir,
                         limit,
+                        order[cell.cell_id],
                         key=f"cell-{cell.cell_id}-{tag}",
                         retries=1,
                     )
@@ -427,6 +663,7 @@ def run_campaign(
                     row = {
                         "cell": cell.cell_id,
                         **cell.axes,
+                        "order": order[cell.cell_id],
                         "status": "failed",
                         "error": f"worker: {_message(exc)}",
                     }
@@ -462,13 +699,27 @@ SUMMARY_METRICS = {
     "est.ate_m": "ATE [m]",
     "est.rpe_trans_m": "RPE [m]",
     "est.nees_in_95": "NEES in 95%",
+    "ring.rate": "ring found",
+    "spin.ok": "spin ok windows",
+    "spin.bias": "spin bias [deg/s]",
+    "spin.spread": "spin spread [deg/s]",
+    "spin.sigma": "spin sigma [deg/s]",
+    "bracket.mislabelled": "mislabelled",
+    "mc.ours_pos_rms_mm": "ours pos RMS [mm]",
+    "mc.ours_rot_rms_deg": "ours rot RMS [deg]",
+    "frames_with_pose": "frames with pose",
     "total_s": "time [s]",
     "peak_rss_mb": "peak RSS [MB]",
 }
 
 
+def _axes(df: pd.DataFrame) -> list[str]:
+    """The axis columns of a results table, in their order."""
+    return axis_order([c for c in df.columns if is_axis(c)])
+
+
 def _varying(df: pd.DataFrame) -> list[str]:
-    return [a for a in AXES if a in df.columns and df[a].astype(str).nunique() > 1]
+    return [a for a in _axes(df) if df[a].astype(str).nunique() > 1]
 
 
 def write_summary(df: pd.DataFrame, out: Path, spec: CampaignSpec) -> list[Path]:
@@ -481,7 +732,7 @@ def write_summary(df: pd.DataFrame, out: Path, spec: CampaignSpec) -> list[Path]
         lines += ["", "| status | cells |", "|---|---|"]
         lines += [f"| {s} | {int(counts.get(s, 0))} |" for s in STATUSES]
         ok = df[df["status"] == "ok"]
-        group = [a for a in _varying(df) if a != "seed"] or ["estimator"]
+        group = [a for a in _varying(df) if a != "seed"] or ["pipeline"]
         metrics = [m for m in SUMMARY_METRICS if m in ok.columns]
         if len(ok) and metrics:
             med = ok.groupby(group, dropna=False)[metrics].median(numeric_only=True)
@@ -500,7 +751,7 @@ def write_summary(df: pd.DataFrame, out: Path, spec: CampaignSpec) -> list[Path]
         if len(bad):
             lines += ["", "Cells not ok:", ""]
             for _, r in bad.iterrows():
-                axes = ", ".join(f"{a}={r[a]}" for a in AXES if a in df.columns)
+                axes = ", ".join(f"{a}={r[a]}" for a in _axes(df))
                 lines.append(f"- `{r['cell']}` ({axes}): {r['status']}: {r['error']}")
         png = plot_errors(df, out / PLOT)
         if png is not None:
@@ -534,7 +785,8 @@ def plot_errors(df: pd.DataFrame, path: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    ok = df[(df["status"] == "ok")] if "est.pos_cm" in df.columns else df.iloc[:0]
+    usable = {"est.pos_cm", "estimator"} <= set(df.columns)
+    ok = df[(df["status"] == "ok") & df["est.pos_cm"].notna()] if usable else df.iloc[:0]
     if not len(ok):
         return None
     axis = next((a for a in _varying(ok) if a != "estimator"), "estimator")

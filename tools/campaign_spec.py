@@ -22,14 +22,29 @@ The axes (each may stand in ``base`` or in ``axes``):
 - ``sequence``: a recorded sequence folder (relative to the spec file), instead of a scenario;
 - ``seed``, ``frames``, ``size`` (``WxH``), ``spp``: passed to ``scaled`` (synthetic only);
 - ``perturb``: dotted `Scenario` overrides (noise, calibration, light; synthetic only);
-- ``estimator``: ``online``, ``offline`` or ``kalman``;
-- ``config``: dotted `PipelineConfig` overrides.
+- ``pipeline``: the cell kind, one per campaign (in ``base``; default ``stereo``):
+  ``stereo`` (`run_pipeline` and `evaluate_run`; with ``estimator: frontend`` the stereo
+  frontend alone, scored per frame), ``spin`` (the mono spin-rate frontend, `run_spin`) or
+  ``bracket`` (the mono bracket method, `run_bracket`; ``scenario: bracket-random`` draws
+  member ``seed`` of the bracket family) or ``bracket-mc`` (seed 002's Monte Carlo run on
+  simulated image points, `satpose.tools.bracket_montecarlo`: no scene, no render; a
+  ``seed`` and a ``config``);
+- ``estimator``: ``online``, ``offline``, ``kalman`` or ``frontend`` (stereo); ``offline``,
+  ``online``, ``kalman`` or ``none`` (bracket; default ``none``, the per-frame poses); not
+  for spin;
+- ``config``: dotted overrides of the pipeline's config: `PipelineConfig` (stereo),
+  `SpinConfig` (spin), `StrutDetectorConfig` (bracket), `MonteCarloConfig` (bracket-mc).
 
 ``perturb`` and ``config`` take a mapping of named variants, or a list of variants (named by
-their keys and values). Everything is checked before any work starts: unknown keys (of the
-spec, of an axis, or a dotted key that is not a field) are one-line errors naming the file
-and the key. The *values* of ``config`` and ``perturb`` keys are converted in each cell, so a
-value one cell cannot use fails that cell only (recorded as ``failed``).
+their keys and values). Several independent override axes multiply: ``perturb.NAME`` and
+``config.NAME`` (e.g. ``perturb.target`` and ``perturb.rate``), each its own column; their
+overrides are merged in the order written. ``axes`` may also be a list of such mappings: the
+union of their products (each with the same ``base``).
+
+Everything is checked before any work starts: unknown keys (of the spec, of an axis, or a
+dotted key that is not a field) are one-line errors naming the file and the key. The *values*
+of ``config`` and ``perturb`` keys are converted in each cell, so a value one cell cannot use
+fails that cell only (recorded as ``failed``).
 """
 
 from __future__ import annotations
@@ -48,10 +63,32 @@ import yaml
 from satpose.datasets.config import to_plain, yaml_problem
 from satpose.datasets.errors import ConfigError
 
-ESTIMATORS = ("online", "offline", "kalman")
-AXES = ("scenario", "sequence", "seed", "frames", "size", "spp", "perturb", "estimator", "config")
-"""Every axis name, in the order of the results table's columns."""
+PIPELINES = ("stereo", "spin", "bracket", "bracket-mc")
+ESTIMATORS = {
+    "stereo": ("online", "offline", "kalman", "frontend"),
+    "spin": (),
+    "bracket": ("none", "offline", "online", "kalman"),
+    "bracket-mc": (),
+}
+"""The estimator axis's values per pipeline (the first is the default; spin has none)."""
+AXES = (
+    "pipeline",
+    "scenario",
+    "sequence",
+    "seed",
+    "frames",
+    "size",
+    "spp",
+    "perturb",
+    "estimator",
+    "config",
+)
+"""Every axis name, in the order of the results table's columns (``perturb.NAME`` and
+``config.NAME`` axes follow ``perturb`` and ``config``)."""
+OVERRIDES = ("perturb", "config")
 SYNTHETIC_ONLY = ("scenario", "seed", "frames", "size", "spp", "perturb")
+BRACKET_FAMILY = "bracket-random"
+"""The bracket family's scenario name (`satpose.datasets.bracket_family`, numpy ray caster)."""
 SPEC_KEYS = ("name", "time_limit_s", "base", "axes")
 DEFAULT_TIME_LIMIT_S = 1800.0
 
@@ -74,11 +111,19 @@ class Cell:
     sequence: str | None
 
     @property
+    def pipeline(self) -> str:
+        """The cell kind (`PIPELINES`)."""
+        return str(self.axes.get("pipeline", "stereo"))
+
+    @property
     def cell_id(self) -> str:
         """A content hash of everything that defines the cell (labels and what they stand
         for): the key under which a re-run finds it in the table."""
+        # The stereo pipeline is left out: ids (and so resuming) are those of the tables
+        # written before the pipeline axis existed.
+        axes = {k: v for k, v in self.axes.items() if (k, v) != ("pipeline", "stereo")}
         text = json.dumps(
-            {"axes": self.axes, "perturb": self.perturb, "config": self.config},
+            {"axes": axes, "perturb": self.perturb, "config": self.config},
             sort_keys=True,
             default=str,
         )
@@ -174,6 +219,21 @@ def _size(path: Path, key: str, v: Any) -> str:
     return f"{w}x{h}"
 
 
+def is_axis(key: str) -> bool:
+    """An axis name: one of `AXES`, or ``perturb.NAME`` / ``config.NAME``."""
+    base, dot, name = str(key).partition(".")
+    return key in AXES or (bool(dot) and bool(name) and base in OVERRIDES)
+
+
+def axis_order(keys: list[str]) -> list[str]:
+    """Axis names in the results table's column order (`AXES`, named override axes after
+    their kind, in the order given)."""
+    out = []
+    for a in AXES:
+        out += [k for k in keys if k == a or (a in OVERRIDES and k.startswith(f"{a}."))]
+    return out
+
+
 def _values(path: Path, axis: str, where: str, values: list[Any]) -> list[Any]:
     """Check the plain values of one axis; return them as the table stores them."""
     key = where
@@ -181,9 +241,14 @@ def _values(path: Path, axis: str, where: str, values: list[Any]) -> list[Any]:
 
     out: list[Any] = []
     for v in values:
-        if axis == "scenario":
-            if v not in scenario_names():
-                _fail(path, key, f"unknown scenario {v!r}; choose from {scenario_names()}")
+        if axis == "pipeline":
+            if v not in PIPELINES:
+                _fail(path, key, f"unknown pipeline {v!r}; choose from {list(PIPELINES)}")
+            out.append(str(v))
+        elif axis == "scenario":
+            names = [*scenario_names(), BRACKET_FAMILY]
+            if v not in names:
+                _fail(path, key, f"unknown scenario {v!r}; choose from {names}")
             out.append(str(v))
         elif axis == "sequence":
             from satpose.datasets.sequence import load_sequence
@@ -210,10 +275,27 @@ def _values(path: Path, axis: str, where: str, values: list[Any]) -> list[Any]:
         elif axis == "size":
             out.append(_size(path, key, v))
         elif axis == "estimator":
-            if v not in ESTIMATORS:
-                _fail(path, key, f"unknown estimator {v!r}; choose from {list(ESTIMATORS)}")
-            out.append(str(v))
+            out.append(str(v))  # checked against the pipeline once it is known
     return out
+
+
+def config_class(pipeline: str) -> type:
+    """The config dataclass whose dotted keys a ``config`` axis overrides."""
+    if pipeline == "spin":
+        from satpose.frontend.spin import SpinConfig
+
+        return SpinConfig
+    if pipeline == "bracket":
+        from satpose.frontend.bracket_lines import StrutDetectorConfig
+
+        return StrutDetectorConfig
+    if pipeline == "bracket-mc":
+        from satpose.tools.bracket_montecarlo import MonteCarloConfig
+
+        return MonteCarloConfig
+    from satpose.tools.pipeline import PipelineConfig
+
+    return PipelineConfig
 
 
 def load_spec(path: str | Path) -> CampaignSpec:
@@ -221,11 +303,8 @@ def load_spec(path: str | Path) -> CampaignSpec:
 
     Raises:
         ConfigError: one line naming the file and the key (malformed YAML, unknown key,
-            unknown axis, preset or estimator, missing sequence folder, bad value).
+            unknown axis, preset, pipeline or estimator, missing sequence folder, bad value).
     """
-    from satpose.datasets.scenarios import Scenario
-    from satpose.tools.pipeline import PipelineConfig
-
     p = Path(path)
     try:
         data = yaml.safe_load(p.read_text(encoding="utf-8"))
@@ -245,73 +324,172 @@ def load_spec(path: str | Path) -> CampaignSpec:
     if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not limit > 0:
         _fail(p, "time_limit_s", f"expected a positive number of seconds, got {limit!r}")
     base = data.get("base") or {}
-    axes = data.get("axes") or {}
-    for section, mapping in (("base", base), ("axes", axes)):
-        if not isinstance(mapping, dict):
-            _fail(p, section, "expected a mapping of axis -> value")
-        for key in mapping:
-            if key not in AXES:
-                _fail(p, f"{section}.{key}", f"unknown axis; known axes: {list(AXES)}")
-    both = sorted(set(base) & set(axes))
-    if both:
-        _fail(p, f"axes.{both[0]}", "is given in both base and axes")
-
-    # Every axis as a list of (label, payload) choices; payload = the label for plain axes.
-    choices: dict[str, list[tuple[Any, Any]]] = {}
-    for key in AXES:
-        if key in axes:
-            raw, where = axes[key], f"axes.{key}"
-            if key in ("perturb", "config"):
-                if raw is None or raw == {} or raw == []:
-                    _fail(p, where, "lists no value")
-            elif not isinstance(raw, list) or not raw:
-                _fail(p, where, "expected a non-empty list of values")
-        elif key in base:
-            raw, where = base[key], f"base.{key}"
-            if key in ("perturb", "config"):
-                raw = [raw] if isinstance(raw, dict) else raw
-            else:
-                raw = [raw]
-        else:
-            continue
-        if key in ("perturb", "config"):
-            cls = Scenario if key == "perturb" else PipelineConfig
-            choices[key] = list(_variants(p, where, raw, cls))
-        else:
-            choices[key] = [(v, v) for v in _values(p, key, where, raw)]
-
-    synthetic = [k for k in SYNTHETIC_ONLY if k in choices]
-    if "sequence" in choices:
-        if synthetic:
-            _fail(p, synthetic[0], "applies to synthetic scenarios only, not to a sequence")
-    elif "scenario" not in choices:
-        raise ConfigError(f"{p}: needs a scenario or a sequence (in base or axes)")
-    if "random" in [v for v, _ in choices.get("scenario", [])] and not any(
-        s is not None for s, _ in choices.get("seed", [])
-    ):
-        _fail(p, "seed", "scenario random needs a seed (base.seed or axes.seed)")
-    choices.setdefault("estimator", [("online", "online")])
-
-    keys = list(choices)
-    cells = []
-    for combo in itertools.product(*(choices[k] for k in keys)):
-        picked = dict(zip(keys, combo, strict=True))
-        cells.append(
-            Cell(
-                axes={k: label for k, (label, _) in picked.items()},
-                perturb=picked["perturb"][1] if "perturb" in picked else {},
-                config=picked["config"][1] if "config" in picked else {},
-                sequence=picked["sequence"][1] if "sequence" in picked else None,
+    raw_axes = data.get("axes") or {}
+    if not isinstance(base, dict):
+        _fail(p, "base", "expected a mapping of axis -> value")
+    # A list of axes mappings is the union of their products (each with the same base).
+    products = raw_axes if isinstance(raw_axes, list) else [raw_axes]
+    if not products:
+        _fail(p, "axes", "lists no product")
+    for key in base:
+        if not is_axis(key):
+            _fail(
+                p,
+                f"base.{key}",
+                f"unknown axis; known axes: {list(AXES)} (and perturb.NAME, config.NAME)",
             )
-        )
+    pipeline = _values(p, "pipeline", "base.pipeline", [base.get("pipeline", "stereo")])[0]
+    cells = []
+    for n, axes in enumerate(products):
+        section = "axes" if not isinstance(raw_axes, list) else f"axes[{n}]"
+        cells += _product(p, base, axes or {}, section, pipeline)
     ids = [c.cell_id for c in cells]
     if len(set(ids)) != len(ids):
         raise ConfigError(f"{p}: axes list the same value twice (cells would repeat)")
     return CampaignSpec(name=name, path=p, time_limit_s=float(limit), cells=cells)
 
 
+def _product(p: Path, base: dict[str, Any], axes: Any, section: str, pipeline: str) -> list[Cell]:
+    """The cells of one product: ``base`` with every combination of ``axes``."""
+    from satpose.datasets.scenarios import Scenario
+
+    if not isinstance(axes, dict):
+        _fail(p, section, "expected a mapping of axis -> value")
+    for key in axes:
+        if not is_axis(key):
+            _fail(
+                p,
+                f"{section}.{key}",
+                f"unknown axis; known axes: {list(AXES)} (and perturb.NAME, config.NAME)",
+            )
+    both = sorted(set(base) & set(axes))
+    if both:
+        _fail(p, f"{section}.{both[0]}", "is given in both base and axes")
+    if "pipeline" in axes:
+        _fail(p, f"{section}.pipeline", "one pipeline per campaign: give it in base")
+
+    # Every axis as a list of (label, payload) choices; payload = the label for plain axes.
+    choices: dict[str, list[tuple[Any, Any]]] = {}
+    for key in axis_order([*base, *axes]):
+        kind = key.split(".")[0]
+        if key in axes:
+            raw, where = axes[key], f"{section}.{key}"
+            if kind in OVERRIDES:
+                if raw is None or raw == {} or raw == []:
+                    _fail(p, where, "lists no value")
+            elif not isinstance(raw, list) or not raw:
+                _fail(p, where, "expected a non-empty list of values")
+        else:
+            raw, where = base[key], f"base.{key}"
+            if kind in OVERRIDES:
+                raw = [raw] if isinstance(raw, dict) else raw
+            else:
+                raw = [raw]
+        if kind in OVERRIDES:
+            cls = Scenario if kind == "perturb" else config_class(pipeline)
+            choices[key] = list(_variants(p, where, raw, cls))
+        else:
+            choices[key] = [(v, v) for v in _values(p, key, where, raw)]
+    if pipeline == "stereo":
+        choices.pop("pipeline", None)  # the default: no column of its own in the cell id
+
+    _check_pipeline(p, pipeline, choices)
+    estimators = ESTIMATORS[pipeline]
+    if estimators:
+        for est, _ in choices.setdefault("estimator", [(estimators[0], estimators[0])]):
+            if est not in estimators:
+                where = f"{section}.estimator" if "estimator" in axes else "base.estimator"
+                _fail(
+                    p,
+                    where,
+                    f"unknown {pipeline} estimator {est!r}; choose from {list(estimators)}",
+                )
+
+    keys = list(choices)
+    cells: list[Cell] = []
+    for combo in itertools.product(*(choices[k] for k in keys)):
+        picked = dict(zip(keys, combo, strict=True))
+        merged = {
+            kind: _merge([v for k, (_, v) in picked.items() if k.split(".")[0] == kind])
+            for kind in OVERRIDES
+        }
+        cells.append(
+            Cell(
+                axes={"pipeline": pipeline} | {k: label for k, (label, _) in picked.items()},
+                perturb=merged["perturb"],
+                config=merged["config"],
+                sequence=picked["sequence"][1] if "sequence" in picked else None,
+            )
+        )
+    return cells
+
+
+def _check_pipeline(p: Path, pipeline: str, choices: dict[str, list[tuple[Any, Any]]]) -> None:
+    """The axes a pipeline cannot use (one line naming the key)."""
+    if pipeline == "bracket-mc":
+        scene = [k for k in choices if k.split(".")[0] in (*SYNTHETIC_ONLY, "sequence")]
+        scene = [k for k in scene if k != "seed"]
+        if scene:
+            _fail(p, scene[0], "bracket-mc simulates image points: no scene (a seed, a config)")
+        if not any(s is not None for s, _ in choices.get("seed", [])):
+            _fail(p, "seed", "bracket-mc needs a seed (base.seed or axes.seed)")
+        if "estimator" in choices:
+            _fail(p, "estimator", "bracket-mc has no estimator axis (config: smooth)")
+        return
+    synthetic = [k for k in choices if k.split(".")[0] in SYNTHETIC_ONLY]
+    scenarios = [v for v, _ in choices.get("scenario", [])]
+    if "sequence" in choices:
+        if synthetic:
+            _fail(p, synthetic[0], "applies to synthetic scenarios only, not to a sequence")
+    elif "scenario" not in choices:
+        raise ConfigError(f"{p}: needs a scenario or a sequence (in base or axes)")
+    seeds = [s for s, _ in choices.get("seed", [])]
+    for family in ("random", BRACKET_FAMILY):
+        if family in scenarios and not any(s is not None for s in seeds):
+            _fail(p, "seed", f"scenario {family} needs a seed (base.seed or axes.seed)")
+    if BRACKET_FAMILY in scenarios:
+        if pipeline != "bracket":
+            _fail(p, "scenario", f"{BRACKET_FAMILY} is a bracket scene: use pipeline: bracket")
+        if len(scenarios) > 1:
+            _fail(p, "scenario", f"{BRACKET_FAMILY} cannot share a campaign with presets")
+        for key in ("spp", "perturb"):
+            bad = [k for k in choices if k.split(".")[0] == key]
+            if bad:
+                _fail(
+                    p,
+                    bad[0],
+                    f"does not apply to {BRACKET_FAMILY} (a numpy ray caster; "
+                    "the scene is the seed's)",
+                )
+    if pipeline == "spin" and "estimator" in choices:
+        _fail(p, "estimator", "the spin pipeline has no estimator axis (config: rate.*)")
+
+
+def _merge(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """Nested override mappings merged in order (later keys win)."""
+    out: dict[str, Any] = {}
+    for part in parts:
+        for k, v in part.items():
+            if isinstance(v, dict) and isinstance(out.get(k), dict):
+                out[k] = _merge([out[k], v])
+            else:
+                out[k] = v
+    return out
+
+
+@dataclass(frozen=True, kw_only=True)
+class BracketMember:
+    """A member of the bracket family to render (`render_bracket_sequence`)."""
+
+    name: str
+    seed: int
+    frames: int
+    size: tuple[int, int]
+
+
 def scenario_of(cell: Cell) -> Any:
-    """The synthetic `Scenario` of a cell (named scenario, perturbed, then scaled).
+    """What a synthetic cell renders: a `Scenario` (named scenario, perturbed, then scaled), or
+    a `BracketMember` for ``bracket-random``.
 
     Raises:
         ConfigError: a ``perturb`` value the scenario refuses.
@@ -322,10 +500,21 @@ def scenario_of(cell: Cell) -> Any:
 
     a = cell.axes
     seed = a.get("seed")
+    size = tuple(int(v) for v in a["size"].split("x")) if a.get("size") else None
+    if a["scenario"] == BRACKET_FAMILY:
+        from satpose.datasets.bracket_family import DEFAULT_FRAMES, DEFAULT_SIZE
+
+        if seed is None:  # load_spec refuses this already
+            raise ConfigError(f"{BRACKET_FAMILY} needs a seed")
+        return BracketMember(
+            name=f"{BRACKET_FAMILY}-{seed}",
+            seed=int(seed),
+            frames=int(a.get("frames") or DEFAULT_FRAMES),
+            size=(size[0], size[1]) if size else DEFAULT_SIZE,
+        )
     scenario = named_scenario(a["scenario"], seed)
     if cell.perturb:
         scenario = replace_nested(scenario, cell.perturb)
-    size = tuple(int(v) for v in a["size"].split("x")) if a.get("size") else None
     return scaled(scenario, frames=a.get("frames"), size=size, spp=a.get("spp"), seed=seed)
 
 

@@ -11,7 +11,8 @@ import argparse
 import logging
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -138,13 +139,43 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "eval",
-        help="metrics of a run against the sequence's ground truth",
-        description="Compare a run's trajectories with groundtruth.csv: errors in seed 000's "
-        "terms (per range band), ATE/RPE as evo defines them, NEES. Prints a table, writes "
-        "metrics.json and metrics.csv into the run folder.",
+        help="metrics of a run or a trajectory file against the sequence's ground truth",
+        description="Compare a run's trajectories, or a TUM/CSV trajectory file another tool "
+        "wrote, with groundtruth.csv: errors in seed 000's terms (per range band), ATE/RPE as "
+        "evo defines them, NEES (where covariances exist), the ESA SPEC score. Prints a table, "
+        "writes metrics.json, metrics.csv and groundtruth.tum into the run folder (a file: into "
+        "--out, default <file stem>_eval/ beside it). A file's poses are left_cam_from_target "
+        "(--inverse: target_from_left_cam) and are matched to frames by time (docs/pipeline.md).",
     )
     p.add_argument("sequence", type=Path, metavar="SEQUENCE", help="sequence folder")
-    p.add_argument("run", type=Path, metavar="DIR", help="run folder (satpose run --out)")
+    p.add_argument(
+        "trajectory",
+        type=Path,
+        metavar="TRAJECTORY",
+        help="run folder (satpose run --out), or a TUM or CSV trajectory file",
+    )
+    p.add_argument(
+        "--format",
+        choices=["tum", "csv"],
+        help="trajectory file format (default: .csv is CSV, .tum/.txt TUM, else by content)",
+    )
+    p.add_argument(
+        "--inverse",
+        action="store_true",
+        help="the file holds target_from_left_cam (the camera in the target frame)",
+    )
+    p.add_argument(
+        "--max-dt",
+        type=float,
+        metavar="S",
+        help="match a pose to the nearest frame within S seconds (default 0.01)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        metavar="DIR",
+        help="folder for a trajectory file's metrics (default: <file stem>_eval/ beside it)",
+    )
 
     p = sub.add_parser(
         "report",
@@ -289,22 +320,29 @@ def cmd_frontend(args: argparse.Namespace) -> None:
     run_frontend_on(args.sequence, args.out, args.config, overwrite=args.overwrite)
 
 
-def cmd_run(args: argparse.Namespace) -> None:
+@contextmanager
+def _frame_progress(desc: str) -> Iterator[Callable[[int, int], None]]:
+    """A tqdm bar on stderr for `run_pipeline`'s ``progress(done, total)`` callback."""
     from tqdm import tqdm
 
-    from satpose.datasets.config import load_config
-    from satpose.tools.pipeline import PipelineConfig, run_pipeline
-
-    config = load_config(PipelineConfig, args.config) if args.config else PipelineConfig()
-    bar = tqdm(
-        desc=f"run {args.estimator}", unit="frame", file=sys.stderr, dynamic_ncols=True, delay=0.5
-    )
+    bar = tqdm(desc=desc, unit="frame", file=sys.stderr, dynamic_ncols=True, delay=0.5)
 
     def progress(done: int, total: int) -> None:
         bar.total = total
         bar.update(done - bar.n)
 
     try:
+        yield progress
+    finally:
+        bar.close()
+
+
+def cmd_run(args: argparse.Namespace) -> None:
+    from satpose.datasets.config import load_config
+    from satpose.tools.pipeline import PipelineConfig, run_pipeline
+
+    config = load_config(PipelineConfig, args.config) if args.config else PipelineConfig()
+    with _frame_progress(f"run {args.estimator}") as progress:
         result = run_pipeline(
             args.sequence,
             args.estimator,
@@ -312,10 +350,9 @@ def cmd_run(args: argparse.Namespace) -> None:
             config,
             overwrite=args.overwrite,
             spawn=args.spawn,
+            connect=getattr(args, "connect", None),
             progress=progress,
         )
-    finally:
-        bar.close()
     n = len(result.measurements)
     poses = sum(m.pose is not None for m in result.measurements)
     print(
@@ -328,12 +365,53 @@ def cmd_run(args: argparse.Namespace) -> None:
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
-    from satpose.tools.evaluate import evaluate_run, table, write_metrics
+    from satpose.tools.evaluate import (
+        DEFAULT_MAX_DT_S,
+        evaluate_file,
+        evaluate_run,
+        table,
+        write_metrics,
+    )
 
-    results = evaluate_run(args.sequence, args.run)
+    path: Path = args.trajectory
+    if path.is_dir():
+        used = [
+            o
+            for o, v in (
+                ("--format", args.format),
+                ("--inverse", args.inverse),
+                ("--max-dt", args.max_dt),
+                ("--out", args.out),
+            )
+            if v
+        ]
+        if used:
+            raise ConfigError(
+                f"{path}: is a run folder; {', '.join(used)} only apply to a trajectory file"
+            )
+        results = evaluate_run(args.sequence, path)
+        print(table(results))
+        write_metrics(results, path, args.sequence)
+        print(f"wrote {path}/metrics.json, metrics.csv and groundtruth.tum")
+        return
+    max_dt = DEFAULT_MAX_DT_S if args.max_dt is None else args.max_dt
+    results, assoc = evaluate_file(
+        args.sequence, path, fmt=args.format, inverse=args.inverse, max_dt_s=max_dt
+    )
     print(table(results))
-    write_metrics(results, args.run, args.sequence)
-    print(f"wrote {args.run}/metrics.json, metrics.csv and groundtruth.tum")
+    m = next(iter(results.values()))
+    print(
+        f"{path.name}: {m.frames} of {m.frames + assoc.unmatched_poses.size} poses matched a "
+        f"frame within {max_dt:g} s; {assoc.unmatched_poses.size} matched none; "
+        f"{assoc.unmatched_frames.size} of {m.frames_in_sequence} frames have no pose"
+    )
+    out = args.out if args.out is not None else path.parent / f"{path.stem}_eval"
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{out}: cannot create the folder ({exc.strerror or exc})") from None
+    write_metrics(results, out, args.sequence)
+    print(f"wrote {out}/metrics.json, metrics.csv and groundtruth.tum")
 
 
 def cmd_report(args: argparse.Namespace) -> None:
@@ -354,7 +432,13 @@ def cmd_demo(args: argparse.Namespace) -> None:
     run = args.out / "run-online"
     _render(scenario, seq, overwrite=True)
     print(f"running frontend + iSAM2 backend on {seq} ...", flush=True)
-    run_pipeline(seq, "online", run, overwrite=True)
+    start = time.perf_counter()
+    with _frame_progress("estimate (frontend + iSAM2)") as progress:
+        run_pipeline(seq, "online", run, overwrite=True, progress=progress)
+    elapsed = time.perf_counter() - start
+    print(
+        f"estimated {DEMO_FRAMES} frames in {elapsed:.1f} s ({elapsed / DEMO_FRAMES:.2f} s/frame)"
+    )
     results = evaluate_run(seq, run)
     write_metrics(results, run, seq)
     print(table(results))
@@ -401,6 +485,24 @@ def _register_campaign(subparsers: Any) -> None:
     register(subparsers)
 
 
+def _register_import(subparsers: Any) -> None:
+    from satpose.tools.import_cli import register
+
+    register(subparsers)
+
+
+def _register_live(subparsers: Any) -> None:
+    from satpose.tools.live import register
+
+    register(subparsers)
+
+
+def _register_export(subparsers: Any) -> None:
+    from satpose.tools.export import register
+
+    register(subparsers)
+
+
 EXTRA_COMMANDS: list[Callable[[Any], None]] = [
     colmap_cli.register,
     spin_cli.register,
@@ -408,6 +510,9 @@ EXTRA_COMMANDS: list[Callable[[Any], None]] = [
     _register_bracket,
     _register_rings,
     _register_campaign,
+    _register_import,
+    _register_live,
+    _register_export,
 ]
 
 

@@ -21,6 +21,11 @@ comparison, the frontend's per-frame poses):
 - the ESA SPEC score (`satpose.tools.metrics.spec_score`: relative translation plus rotation
   error, each zeroed below its threshold; rotation after the body-frame offset, like the
   rotation errors above).
+
+`evaluate_file` measures the same for one TUM or CSV trajectory file another tool wrote
+(`satpose.tools.trajectories`): its poses are matched to the sequence's frames by time within
+a tolerance (`associate`; unmatched poses and frames are counted), the NEES needs the CSV's
+``pose_cov_*`` columns and the spin-rate error its ``wx wy wz`` (reported n/a otherwise).
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ from scipy.stats import chi2
 from satpose.backend import Estimate
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec
-from satpose.datasets.sequence import load_sequence
+from satpose.datasets.sequence import GroundTruth, Sequence, load_sequence
 from satpose.tools.files import atomic_write, read_tum, write_tum
 from satpose.tools.metrics import (
     RANGE_BANDS_M,
@@ -51,6 +56,12 @@ from satpose.tools.metrics import (
     spec_score,
 )
 from satpose.tools.pipeline import read_estimate_npz, read_provenance
+from satpose.tools.trajectories import (
+    Association,
+    TrajectoryFormat,
+    associate,
+    read_trajectory,
+)
 
 
 class EvalError(SatposeError):
@@ -66,12 +77,24 @@ COMPARISON_FILES = {
 """Trajectories `satpose run` writes besides the chosen estimator's (estimate.npz)."""
 
 
+DEFAULT_MAX_DT_S = 0.01
+"""`evaluate_file`'s default time tolerance when matching poses to frames [s] (evo's
+``--t_max_diff`` default)."""
+
+
 @dataclass(frozen=True)
 class Trajectory:
+    """Poses matched to ground-truth rows: ``poses[k]`` belongs to ``truth_rows[k]``.
+
+    ``pose_covariance`` (6x6 over [rotation, translation] per pose) and ``angular_velocity``
+    (target axes [rad/s]) where the source had them; ``unmatched`` poses matched no frame."""
+
     name: str
-    frames: np.ndarray
     poses: list[Rigid3]
-    estimate: Estimate | None  # with covariances and twist, if the file had them
+    truth_rows: list[int]
+    pose_covariance: np.ndarray | None = None
+    angular_velocity: np.ndarray | None = None
+    unmatched: int = 0
 
 
 def ate_rmse(est: list[Rigid3], truth: list[Rigid3], align: bool = False) -> float | None:
@@ -104,13 +127,16 @@ def rpe_rmse(est: list[Rigid3], truth: list[Rigid3]) -> tuple[float, float]:
     return float(np.sqrt(np.mean(np.square(dt)))), float(np.sqrt(np.mean(np.square(dr))))
 
 
-def nees(est: Estimate, truth: list[Rigid3], offset: np.ndarray) -> np.ndarray:
+def nees(
+    poses: list[Rigid3], covariances: np.ndarray, truth: list[Rigid3], offset: np.ndarray
+) -> np.ndarray:
     """Per-frame pose NEES with the estimate re-expressed in the truth's body frame:
-    ``T_est R_off``, covariance rotated by the adjoint of ``R_off``."""
+    ``T_est R_off``, covariance (N, 6, 6) over [rotation, translation] rotated by the adjoint
+    of ``R_off``."""
     A = np.zeros((6, 6))
     A[:3, :3] = A[3:, 3:] = offset.T
     out = []
-    for T, C, G in zip(est.left_cam_from_target, est.pose_covariance, truth, strict=True):
+    for T, C, G in zip(poses, covariances, truth, strict=True):
         Ta = T @ Rigid3(R=offset, t=np.zeros(3))
         d = Ta.inverse() @ G
         xi = np.concatenate([matrix_to_rotvec(d.R), d.t])
@@ -122,7 +148,26 @@ def nees(est: Estimate, truth: list[Rigid3], offset: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-def _load(run: Path) -> list[Trajectory]:
+def _from_estimate(name: str, est: Estimate, truth: GroundTruth) -> Trajectory:
+    """An estimate's poses on the truth rows of its frame indices."""
+    keep, rows = [], []
+    for k, f in enumerate(est.frame):
+        try:
+            rows.append(truth.row_of_frame(int(f)))
+            keep.append(k)
+        except KeyError:
+            pass
+    return Trajectory(
+        name,
+        [est.left_cam_from_target[k] for k in keep],
+        rows,
+        est.pose_covariance[keep],
+        est.angular_velocity[keep],
+        unmatched=len(est) - len(keep),
+    )
+
+
+def _load(run: Path, truth: GroundTruth) -> list[Trajectory]:
     out = []
     estimator = "estimate"
     estimator = str(read_provenance(run).get("estimator", estimator))
@@ -133,11 +178,20 @@ def _load(run: Path) -> list[Trajectory]:
         p = run / fname
         if p.is_file() and name not in seen:
             seen.add(name)
-            est = read_estimate_npz(p)
-            out.append(Trajectory(name, est.frame, list(est.left_cam_from_target), est))
+            out.append(_from_estimate(name, read_estimate_npz(p), truth))
     if (run / "frontend_pose.tum").is_file():
-        t, poses = read_tum(run / "frontend_pose.tum")
-        out.append(Trajectory("per-frame (frontend)", t, poses, None))  # frames by time
+        t, poses = read_tum(run / "frontend_pose.tum")  # frames by their exact times
+        times = {round(float(ts), 6): i for i, ts in enumerate(truth.t_s)}
+        found = [(k, times.get(round(float(ts), 6))) for k, ts in enumerate(t)]
+        matched = [(k, r) for k, r in found if r is not None]
+        out.append(
+            Trajectory(
+                "per-frame (frontend)",
+                [poses[k] for k, _ in matched],
+                [int(r) for _, r in matched],
+                unmatched=len(found) - len(matched),
+            )
+        )
     if not out:
         raise EvalError(f"{run}: no trajectory found (expected estimate.npz from `satpose run`)")
     return out
@@ -214,113 +268,144 @@ class TrajectoryMetrics:
     bias: Bias
     per_frame: pd.DataFrame
     spec: SpecScore
+    poses_unmatched: int = 0
 
 
-def evaluate_run(sequence_path: Path, run: Path) -> dict[str, TrajectoryMetrics]:
-    """Metrics of every trajectory in ``run`` against the sequence's ground truth."""
+def _truth_of(sequence_path: Path) -> tuple[Sequence, GroundTruth]:
     seq = load_sequence(sequence_path)
     if seq.truth is None:
         raise EvalError(
             f"{sequence_path}: has no groundtruth.csv: nothing to evaluate against "
             "(a real recording; see `satpose check-sfm` for an independent check)"
         )
-    truth = seq.truth
-    times = {round(float(t), 6): i for i, t in enumerate(truth.t_s)}
+    return seq, seq.truth
+
+
+def evaluate_run(sequence_path: Path, run: Path) -> dict[str, TrajectoryMetrics]:
+    """Metrics of every trajectory in ``run`` against the sequence's ground truth."""
+    seq, truth = _truth_of(sequence_path)
     results: dict[str, TrajectoryMetrics] = {}
-    for traj in _load(run):
-        rows: list[int | None] = []
-        for f in traj.frames:
-            if traj.estimate is None:  # TUM: frames are times
-                rows.append(times.get(round(float(f), 6)))
-            else:
-                try:
-                    rows.append(truth.row_of_frame(int(f)))
-                except KeyError:
-                    rows.append(None)
-        keep = [k for k, r in enumerate(rows) if r is not None]
-        if len(keep) < 2:
-            continue
-        truth_rows = [int(rows[k]) for k in keep]  # type: ignore[arg-type]
-        est = [traj.poses[k] for k in keep]
-        gt = [truth.pose(r) for r in truth_rows]
-        offset = body_rotation_offset(est, gt)
-        err = pose_errors(est, gt, offset)
-        dt, dr = relative_errors(est, gt, offset)
-        # RPE compares motions expressed in the body frame: use the estimate in the truth's
-        # body axes (T_est R_off), or a non-cooperative frame choice would count as error.
-        off = Rigid3(R=offset, t=np.zeros(3))
-        rpe_t, rpe_r = rpe_rmse([T @ off for T in est], gt)
-        bands = {}
-        for band in RANGE_BANDS_M:
-            sel = band_mask(err.range_m, band)
-            if sel.any():
-                rel = sel[:-1] & sel[1:]
-                bands[band_label(band)] = BandMetrics(
-                    frames=int(sel.sum()),
-                    pos_cm=100 * float(err.position_m[sel].mean()),
-                    rot_deg=float(err.rotation_deg[sel].mean()),
-                    rel_pos_cm=100 * float(dt[rel].mean()) if rel.any() else None,
-                    rel_rot_deg=float(dr[rel].mean()) if rel.any() else None,
-                )
-        nees_mean = nees_in = spin_err = None
-        if traj.estimate is not None:
-            sub = _subset(traj.estimate, keep)
-            n = nees(sub, gt, offset)
-            lo, hi = chi2.ppf([0.025, 0.975], 6)
-            nees_mean = float(np.nanmean(n))
-            nees_in = float(np.mean((n > lo) & (n < hi)))
-            if truth.angular_velocity is not None:
-                dtf = 1.0 / seq.rate_hz
-                true_rate = (
-                    np.degrees(np.linalg.norm(truth.angular_velocity[truth_rows], axis=1)) * dtf
-                )
-                spin_err = float(np.mean(np.abs(sub.spin_rate_deg_per_frame(dtf) - true_rate)))
-        signed = signed_errors(est, gt)
-        per_frame = pd.DataFrame(
-            {
-                "frame": truth.frame[truth_rows],
-                "range_m": err.range_m,
-                "pos_err_cm": 100 * err.position_m,
-                "rot_err_deg": err.rotation_deg,
-                "depth_err_cm": 100 * signed.depth_m,
-                "lateral_x_err_cm": 100 * signed.lateral_m[:, 0],
-                "lateral_y_err_cm": 100 * signed.lateral_m[:, 1],
-                "tilt_err_deg": signed.tilt_deg,
-                "normal_err_deg": signed.normal_deg,
-            }
-        )
-        results[traj.name] = TrajectoryMetrics(
-            frames=len(keep),
-            frames_in_sequence=len(seq),
-            pos_cm=100 * float(err.position_m.mean()),
-            rot_deg=float(err.rotation_deg.mean()),
-            rot_raw_deg=float(err.rotation_raw_deg.mean()),
-            body_offset_deg=err.offset_deg,
-            rel_pos_cm=100 * float(dt.mean()),
-            rel_rot_deg=float(dr.mean()),
-            ate_m=float(ate_rmse(est, gt)),  # type: ignore[arg-type]
-            ate_aligned_m=ate_rmse(est, gt, align=True),
-            rpe_trans_m=rpe_t,
-            rpe_rot_deg=rpe_r,
-            bands=bands,
-            nees_mean=nees_mean,
-            nees_in_95=nees_in,
-            spin_err_deg_per_frame=spin_err,
-            bias=Bias.of(signed),
-            per_frame=per_frame,
-            spec=spec_score(est, gt, offset),
-        )
+    for traj in _load(run, truth):
+        m = _metrics(seq, truth, traj)
+        if m is not None:
+            results[traj.name] = m
     return results
 
 
-def _subset(est: Estimate, keep: list[int]) -> Estimate:
-    return Estimate(
-        frame=est.frame[keep],
-        t_s=est.t_s[keep],
-        left_cam_from_target=tuple(est.left_cam_from_target[k] for k in keep),
-        twist=est.twist[keep],
-        pose_covariance=est.pose_covariance[keep],
-        twist_covariance=est.twist_covariance[keep],
+def evaluate_file(
+    sequence_path: Path,
+    path: Path,
+    *,
+    fmt: TrajectoryFormat | None = None,
+    inverse: bool = False,
+    max_dt_s: float = DEFAULT_MAX_DT_S,
+) -> tuple[dict[str, TrajectoryMetrics], Association]:
+    """Metrics of one TUM/CSV trajectory file (`satpose.tools.trajectories.read_trajectory`:
+    ``fmt``, ``inverse``) against the sequence's ground truth, its poses matched to frames by
+    time within ``max_dt_s`` [s]. Returns the metrics (keyed by the file name) and the
+    association (which poses and frames went unmatched).
+
+    Raises:
+        EvalError: no ground truth, or fewer than two poses matched a frame.
+        ResultFileError: the file is missing or malformed.
+    """
+    if not (max_dt_s >= 0 and np.isfinite(max_dt_s)):
+        raise EvalError(f"time tolerance must be a finite number >= 0 s, got {max_dt_s}")
+    seq, truth = _truth_of(sequence_path)
+    track = read_trajectory(path, fmt, inverse=inverse)
+    a = associate(track.t_s, truth.t_s, max_dt_s)
+    idx = list(a.pose_index)
+    traj = Trajectory(
+        Path(path).name,
+        [track.poses[k] for k in idx],
+        [int(r) for r in a.frame_row],
+        None if track.pose_covariance is None else track.pose_covariance[idx],
+        None if track.angular_velocity is None else track.angular_velocity[idx],
+        unmatched=int(a.unmatched_poses.size),
+    )
+    m = _metrics(seq, truth, traj)
+    if m is None:
+        raise EvalError(
+            f"{path}: only {len(idx)} of its {len(track)} poses (times {track.t_s[0]:.6f} to "
+            f"{track.t_s[-1]:.6f} s) lie within {max_dt_s:g} s of a frame of {sequence_path} "
+            f"(frames {truth.t_s[0]:.6f} to {truth.t_s[-1]:.6f} s): at least 2 are needed "
+            "(check the time origin and units, or --max-dt)"
+        )
+    return {traj.name: m}, a
+
+
+def _metrics(seq: Sequence, truth: GroundTruth, traj: Trajectory) -> TrajectoryMetrics | None:
+    """Everything `TrajectoryMetrics` holds for matched poses (None below two matches)."""
+    if len(traj.poses) < 2:
+        return None
+    truth_rows = traj.truth_rows
+    est = traj.poses
+    gt = [truth.pose(r) for r in truth_rows]
+    offset = body_rotation_offset(est, gt)
+    err = pose_errors(est, gt, offset)
+    dt, dr = relative_errors(est, gt, offset)
+    # RPE compares motions expressed in the body frame: use the estimate in the truth's
+    # body axes (T_est R_off), or a non-cooperative frame choice would count as error.
+    off = Rigid3(R=offset, t=np.zeros(3))
+    rpe_t, rpe_r = rpe_rmse([T @ off for T in est], gt)
+    bands = {}
+    for band in RANGE_BANDS_M:
+        sel = band_mask(err.range_m, band)
+        if sel.any():
+            rel = sel[:-1] & sel[1:]
+            bands[band_label(band)] = BandMetrics(
+                frames=int(sel.sum()),
+                pos_cm=100 * float(err.position_m[sel].mean()),
+                rot_deg=float(err.rotation_deg[sel].mean()),
+                rel_pos_cm=100 * float(dt[rel].mean()) if rel.any() else None,
+                rel_rot_deg=float(dr[rel].mean()) if rel.any() else None,
+            )
+    nees_mean = nees_in = spin_err = None
+    if traj.pose_covariance is not None:
+        n = nees(est, traj.pose_covariance, gt, offset)
+        lo, hi = chi2.ppf([0.025, 0.975], 6)
+        nees_mean = float(np.nanmean(n))
+        nees_in = float(np.mean((n > lo) & (n < hi)))
+    if traj.angular_velocity is not None and truth.angular_velocity is not None:
+        dtf = 1.0 / seq.rate_hz
+        true_rate = np.degrees(np.linalg.norm(truth.angular_velocity[truth_rows], axis=1)) * dtf
+        est_rate = np.degrees(np.linalg.norm(traj.angular_velocity, axis=1)) * dtf
+        spin_err = float(np.mean(np.abs(est_rate - true_rate)))
+    signed = signed_errors(est, gt)
+    per_frame = pd.DataFrame(
+        {
+            "frame": truth.frame[truth_rows],
+            "range_m": err.range_m,
+            "pos_err_cm": 100 * err.position_m,
+            "rot_err_deg": err.rotation_deg,
+            "depth_err_cm": 100 * signed.depth_m,
+            "lateral_x_err_cm": 100 * signed.lateral_m[:, 0],
+            "lateral_y_err_cm": 100 * signed.lateral_m[:, 1],
+            "tilt_err_deg": signed.tilt_deg,
+            "normal_err_deg": signed.normal_deg,
+        }
+    )
+    return TrajectoryMetrics(
+        frames=len(est),
+        frames_in_sequence=len(seq),
+        pos_cm=100 * float(err.position_m.mean()),
+        rot_deg=float(err.rotation_deg.mean()),
+        rot_raw_deg=float(err.rotation_raw_deg.mean()),
+        body_offset_deg=err.offset_deg,
+        rel_pos_cm=100 * float(dt.mean()),
+        rel_rot_deg=float(dr.mean()),
+        ate_m=float(ate_rmse(est, gt)),  # type: ignore[arg-type]
+        ate_aligned_m=ate_rmse(est, gt, align=True),
+        rpe_trans_m=rpe_t,
+        rpe_rot_deg=rpe_r,
+        bands=bands,
+        nees_mean=nees_mean,
+        nees_in_95=nees_in,
+        spin_err_deg_per_frame=spin_err,
+        bias=Bias.of(signed),
+        per_frame=per_frame,
+        spec=spec_score(est, gt, offset),
+        poses_unmatched=traj.unmatched,
     )
 
 
@@ -334,12 +419,12 @@ def table(results: dict[str, TrajectoryMetrics]) -> str:
     lines = [head, "|---" * 12 + "|"]
     for name, m in results.items():
         nees_txt = (
-            "-"
+            "n/a"
             if m.nees_mean is None
             else (f"{m.nees_mean:.1f} ({100 * (m.nees_in_95 or 0):.0f} %)")
         )
         aligned = "-" if m.ate_aligned_m is None else f"{100 * m.ate_aligned_m:.2f}"
-        spin = "-" if m.spin_err_deg_per_frame is None else f"{m.spin_err_deg_per_frame:.3f}"
+        spin = "n/a" if m.spin_err_deg_per_frame is None else f"{m.spin_err_deg_per_frame:.3f}"
         lines.append(
             f"| {name} | {m.frames}/{m.frames_in_sequence} | {m.pos_cm:.2f} | {m.rot_deg:.3f} | "
             f"{m.rot_raw_deg:.2f} | {m.rel_pos_cm:.2f} / {m.rel_rot_deg:.3f} | "

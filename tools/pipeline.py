@@ -13,7 +13,8 @@ replaced only with ``overwrite``, stays as it was):
 - ``measurements.parquet``: the frontend's measurements (tools.files).
 - ``timings.csv``: per frame and stage [ms]: ``frontend_<stage>``, ``frontend_total``, each
   estimator's ``add()`` (``backend_<name>``) and its own stages (``backend_<name>_<stage>``,
-  e.g. ``backend_online_update``: iSAM2's update). Wall clock (``..._cpu``: the process's CPU
+  e.g. ``backend_online_update``: iSAM2's update), ``recording`` (logging the frame to
+  run.rrd). Wall clock (``..._cpu``: the process's CPU
   time): with run.rrd the only output that varies run to run.
 - ``config.yaml``: the resolved configuration; ``run.yaml``: provenance (sequence, estimator).
 - ``run.rrd``: the Rerun recording (tools.recording).
@@ -46,10 +47,10 @@ from satpose.backend import BackendConfig, BackendError, Estimate, StepReport, m
 from satpose.datasets.config import to_plain, yaml_problem
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3
-from satpose.datasets.sequence import Sequence, load_sequence
+from satpose.datasets.sequence import Calibration, Frame, GroundTruth, load_sequence
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
-from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
-from satpose.tools.badframes import BadFrames, guarded, measure_frame
+from satpose.frontend.pipeline import FrontendConfig, StereoFrontend, read_stereo
+from satpose.tools.badframes import BadFrames, guarded
 from satpose.tools.files import atomic_write, staged_output, write_measurements, write_tum
 from satpose.tools.recording import RecordingConfig, RunRecorder
 
@@ -244,6 +245,7 @@ def run_pipeline(
     *,
     overwrite: bool = False,
     spawn: bool = False,
+    connect: str | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> RunResult:
     """Run frontend and backend over a sequence and write the run folder (see module doc).
@@ -251,11 +253,11 @@ def run_pipeline(
     Args:
         overwrite: replace an existing run folder (one holding run.yaml) once the new one is
             complete; other non-empty folders are always refused.
+        spawn, connect: also stream the recording to a Rerun viewer (`RunRecorder`).
         progress: called with ``(frames done, frames total)`` after each frame.
     """
     cfg = config or PipelineConfig()
-    if estimator not in ("online", "offline", "kalman"):
-        raise RunError(f"unknown estimator {estimator!r}; choose online, offline or kalman")
+    check_estimator(estimator)
     seq = load_sequence(sequence_path)
     if seq.kind != "stereo":
         raise RunError(
@@ -263,84 +265,205 @@ def run_pipeline(
         )
     out = Path(out)
     with staged_output(out, overwrite, marker="run.yaml", what="a run", error=RunError) as stage:
-        result = _run(seq, Path(sequence_path), estimator, stage, cfg, spawn, progress)
+        recorder = RunRecorder(
+            stage / "run.rrd", seq.calibration, seq.target, cfg.recording, spawn, connect
+        )
+        step = FrameStep(
+            seq.calibration,
+            estimator,
+            cfg,
+            recorder,
+            rate_hz=seq.rate_hz,
+            truth=seq.truth,
+            root=seq.root,
+        )
+        try:
+            for k, frame in enumerate(seq):
+                step(
+                    frame.index,
+                    frame.t_s,
+                    partial(_stereo_images, frame),
+                    (frame.left_path, frame.right_path),
+                )
+                if progress is not None:
+                    progress(k + 1, len(seq))
+            finals = step.finish(Path(sequence_path), len(seq))
+        finally:
+            recorder.close()
+        result = write_run(
+            stage, step, finals, provenance(Path(sequence_path), estimator, len(seq), step)
+        )
     return replace(result, out=out)
 
 
-def _run(
-    seq: Sequence,
-    sequence_path: Path,
-    estimator: EstimatorName,
-    out: Path,
-    cfg: PipelineConfig,
-    spawn: bool,
-    progress: Callable[[int, int], None] | None,
-) -> RunResult:
-    """The run itself, writing into the (staging) folder ``out``."""
-    names = ["online", "offline", "kalman"] if cfg.compare else [estimator]
-    steps: dict[str, float] = {}  # the estimators' own stage times of the current frame
+def check_estimator(estimator: str) -> None:
+    """Refuse an unknown estimator name (`RunError`)."""
+    if estimator not in ("online", "offline", "kalman"):
+        raise RunError(f"unknown estimator {estimator!r}; choose online, offline or kalman")
 
-    def hook(report: StepReport) -> None:
+
+def _stereo_images(frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+    return frame.left(), frame.right()
+
+
+@dataclass(frozen=True)
+class Finals:
+    """The estimators' results at the end of a run (`FrameStep.finish`).
+
+    Attributes:
+        estimates: every estimator's final ``estimate()`` (smoothed for online and offline),
+            by name; an estimator other than the chosen one that failed is left out.
+        main: the chosen estimator's final estimate.
+        causal: the chosen estimator's causal estimate (each frame's right after that frame:
+            ``filtered()`` for online and kalman; offline: ``main``).
+    """
+
+    estimates: dict[str, Estimate]
+    main: Estimate
+    causal: Estimate
+
+
+class FrameStep:
+    """One stereo frame through the frontend, every estimator's ``add()`` and the recording:
+    the per-frame work that `run_pipeline` (every frame of a finished sequence) and
+    ``satpose track --live`` (`satpose.tools.live`, the frames it does not drop) share.
+
+    Each call appends the frame's measurements to `results` and its timings row to
+    `timing_rows`, and notes a bad frame in `bad`; `finish` gets the final estimates.
+
+    Args:
+        calibration: the stereo calibration.
+        estimator: the chosen estimator (with ``config.compare`` all three run).
+        config: the pipeline config.
+        recorder: the Rerun recording (`RunRecorder`).
+        rate_hz: the sequence's nominal frame rate (spin rates per frame in the recording).
+        truth: ground truth for the recording, if the sequence has it (never estimated from).
+        root: the sequence folder (bad frames' files are named relative to it).
+    """
+
+    def __init__(
+        self,
+        calibration: Calibration,
+        estimator: EstimatorName,
+        config: PipelineConfig,
+        recorder: RunRecorder,
+        *,
+        rate_hz: float,
+        truth: GroundTruth | None = None,
+        root: Path | None = None,
+    ) -> None:
+        self.estimator = estimator
+        self.config = config
+        self.recorder = recorder
+        self.rate_hz = rate_hz
+        self.truth = truth
+        names = ["online", "offline", "kalman"] if config.compare else [estimator]
+        self._steps: dict[str, float] = {}  # the estimators' own stage times of the frame
+        self.estimators = {
+            name: make_estimator(name, calibration, config.backend, hook=self._hook)
+            for name in names
+        }
+        self.frontend = StereoFrontend(calibration, config.frontend)
+        self.results: list[FrameMeasurements] = []
+        self.timing_rows: list[dict[str, Any]] = []
+        self.bad = BadFrames(root)
+
+    def _hook(self, report: StepReport) -> None:
         if report.step == "add":
             for stage, ms in report.timings_ms.items():
-                steps[f"backend_{report.estimator}_{stage}"] = ms
+                self._steps[f"backend_{report.estimator}_{stage}"] = ms
 
-    estimators = {
-        name: make_estimator(name, seq.calibration, cfg.backend, hook=hook) for name in names
-    }
-    frontend = StereoFrontend(seq.calibration, cfg.frontend)
-    recorder = RunRecorder(out / "run.rrd", seq.calibration, seq.target, cfg.recording, spawn=spawn)
-    results: list[FrameMeasurements] = []
-    timing_rows: list[dict[str, Any]] = []
-    bad = BadFrames(seq.root)
-    try:
-        for k, frame in enumerate(seq):
-            t0 = time.perf_counter()
-            m = measure_frame("frontend", frame, frontend.process_frame)
-            t1 = time.perf_counter()
-            row: dict[str, Any] = {
-                "frame": frame.index,
-                "t_s": frame.t_s,
-                **{f"frontend_{s}": v for s, v in m.timings_ms.items()},
-                "frontend_total": (t1 - t0) * 1000.0,
-            }
-            steps.clear()
-            notes: list[str] = []
-            for name, est in estimators.items():
-                t2 = time.perf_counter()
-                _, why = guarded(f"backend_{name}", frame.index, partial(est.add, m))
-                notes += [why] if why else []
-                row[f"backend_{name}"] = (time.perf_counter() - t2) * 1000.0
-            row.update(steps)
-            timing_rows.append(row)
-            _, why = guarded(
-                "recording",
-                frame.index,
-                partial(_record, recorder, seq, k, frame, m, estimators, row),
-            )
+    def __call__(
+        self,
+        index: int,
+        t_s: float,
+        read: Callable[[], tuple[np.ndarray, np.ndarray]],
+        files: tuple[Path | None, ...] = (),
+    ) -> FrameMeasurements:
+        """Process one frame.
+
+        Args:
+            index, t_s: the frame's index and time [s] (increasing from call to call).
+            read: returns the raw ``(left, right)`` images; a `SatposeError` (or any
+                exception) makes the frame bad, not the run.
+            files: the frame's image files, named in a bad-frame warning.
+
+        Returns:
+            the frame's measurements, with any stage's failure notes.
+        """
+        t0 = time.perf_counter()
+        images, failed = read_stereo(index, t_s, read)
+        if images is None:
+            assert failed is not None
+            m = failed
+        else:
+            m, why = guarded("frontend", index, partial(self.frontend.process, index, t_s, *images))
+            if m is None:
+                m = FrameMeasurements(frame=index, t_s=t_s, failures=(str(why),))
+        t1 = time.perf_counter()
+        row: dict[str, Any] = {
+            "frame": index,
+            "t_s": t_s,
+            **{f"frontend_{s}": v for s, v in m.timings_ms.items()},
+            "frontend_total": (t1 - t0) * 1000.0,
+        }
+        self._steps.clear()
+        notes: list[str] = []
+        for name, est in self.estimators.items():
+            t2 = time.perf_counter()
+            _, why = guarded(f"backend_{name}", index, partial(est.add, m))
             notes += [why] if why else []
-            if notes:
-                m = replace(m, failures=(*m.failures, *notes))
-            results.append(m)
-            bad.note(frame.index, m.failures, (frame.left_path, frame.right_path))
-            if progress is not None:
-                progress(k + 1, len(seq))
+            row[f"backend_{name}"] = (time.perf_counter() - t2) * 1000.0
+        row.update(self._steps)
+        self.timing_rows.append(row)
+        shown = {"left": images[0], "right": images[1]} if images is not None else {}
+        t3 = time.perf_counter()
+        _, why = guarded("recording", index, partial(self._record, index, m, shown, row))
+        row["recording"] = (time.perf_counter() - t3) * 1000.0
+        notes += [why] if why else []
+        if notes:
+            m = replace(m, failures=(*m.failures, *notes))
+        self.results.append(m)
+        self.bad.note(index, m.failures, files)
+        return m
+
+    def causal(self) -> Estimate | None:
+        """The chosen estimator's causal estimate so far (None before it has one; offline has
+        none until `finish`)."""
+        if self.estimator == "offline":
+            return None
+        try:
+            return self.estimators[self.estimator].filtered()
+        except BackendError:
+            return None
+
+    def finish(self, sequence_path: Path, total: int) -> Finals:
+        """Every estimator's final estimate, the smoothed trajectories logged to the recording.
+
+        Args:
+            sequence_path: named in the error.
+            total: the number of frames of the sequence (in the bad-frame summary).
+
+        Raises:
+            RunError: the chosen estimator has no estimate (e.g. the ring was never found).
+        """
         finals = {}
-        for name, est in estimators.items():
+        for name, est in self.estimators.items():
             try:
                 finals[name] = est.estimate()
             except Exception as exc:
                 text = str(exc) if isinstance(exc, BackendError) else exception_failure(name, exc)
                 if not isinstance(exc, BackendError):
                     log.debug("%s estimator: estimate() raised", name, exc_info=True)
-                if name == estimator:
-                    why = f" ({bad.summary(len(seq))})" if bad.count else ""
+                if name == self.estimator:
+                    why = f" ({self.bad.summary(total)})" if self.bad.count else ""
                     raise RunError(f"{sequence_path}: no estimate: {text}{why}") from None
                 log.warning("%s estimator: %s", name, text)
-        main = finals[estimator]
+        main = finals[self.estimator]
         causal = main
-        if estimator != "offline":
-            causal, why = guarded(f"backend_{estimator}", -1, estimators[estimator].filtered)
+        if self.estimator != "offline":
+            est = self.estimators[self.estimator]
+            causal, why = guarded(f"backend_{self.estimator}", -1, est.filtered)
             if causal is None:
                 raise RunError(f"{sequence_path}: no filtered estimate: {why}")
         for name, label in (("offline", "smoothed"), ("online", "isam2_smoothed")):
@@ -350,26 +473,107 @@ def _run(
                     "recording",
                     -1,
                     partial(
-                        recorder.log_final,
+                        self.recorder.log_final,
                         label,
                         list(e.frame),
                         list(e.left_cam_from_target),
-                        [_truth_pose(seq, int(i)) for i in e.frame],
-                        list(e.spin_rate_deg_per_frame(1.0 / seq.rate_hz)),
+                        [_truth_pose(self.truth, int(i)) for i in e.frame],
+                        list(e.spin_rate_deg_per_frame(1.0 / self.rate_hz)),
+                        list(e.t_s),
                     ),
                 )
                 if why:
                     log.warning("run.rrd: the %s trajectory is missing: %s", label, why)
-    finally:
-        recorder.close()
-    write_estimate(causal, out, "trajectory")
-    write_estimate_npz(causal, out / "estimate.npz")
+        return Finals(estimates=finals, main=main, causal=causal)
+
+    def _record(
+        self,
+        index: int,
+        m: FrameMeasurements,
+        images: dict[str, np.ndarray],
+        timings: dict[str, Any],
+    ) -> None:
+        """Log one frame: images, detections, the causal estimates so far."""
+        poses: dict[str, Rigid3 | None] = {
+            "per_frame": m.pose.left_cam_from_target if m.pose is not None else None
+        }
+        cov = None
+        spin: dict[str, float] = {}
+        for name, key in (("kalman", "kalman"), ("online", "isam2")):
+            est = self.estimators.get(name)
+            if est is None:
+                continue
+            try:
+                f = est.filtered()
+            except BackendError:
+                continue
+            if len(f) and int(f.frame[-1]) == index:
+                poses[key] = f.left_cam_from_target[-1]
+                spin[key] = float(f.spin_rate_deg_per_frame(1.0 / self.rate_hz)[-1])
+                if name == "online":
+                    cov = f.pose_covariance[-1]
+        truth = _truth_pose(self.truth, index)
+        if truth is not None and self.truth is not None and self.truth.angular_velocity is not None:
+            row = self.truth.row_of_frame(index)
+            spin["truth"] = float(
+                np.degrees(np.linalg.norm(self.truth.angular_velocity[row])) / self.rate_hz
+            )
+        stage_ms = {
+            k2.removeprefix("frontend_"): v
+            for k2, v in timings.items()
+            if k2.startswith(("frontend_", "backend_")) and k2 != "frontend_total"
+        }
+        shown = images if self.recorder.config.images else {}
+        self.recorder.log_frame(index, shown, m, poses, cov, truth, spin, stage_ms)
+
+
+def provenance(sequence_path: Path, estimator: str, frames: int, step: FrameStep) -> dict[str, Any]:
+    """run.yaml's content (a run's provenance and counts)."""
+    return {
+        "satpose": _version(),
+        "sequence": str(sequence_path.resolve()),
+        "estimator": estimator,
+        "frames": frames,
+        "frames_with_pose": sum(m.pose is not None for m in step.results),
+        "bad_frames": step.bad.count,
+        "bad_frames_by_reason": step.bad.as_dict(),
+        "command": " ".join(sys.argv),
+    }
+
+
+def timings_frame(rows: list[dict[str, Any]]) -> pd.DataFrame:
+    """timings.csv's table of `FrameStep.timing_rows`."""
+    tdf = pd.DataFrame(rows)
+    # a frontend stage that did not run took 0 ms; an estimator stage that did not happen
+    # (e.g. iSAM2's update during its warm-up) stays empty
+    front = [c for c in tdf.columns if c.startswith("frontend_")]
+    tdf[front] = tdf[front].fillna(0.0)
+    return tdf
+
+
+def write_run(
+    out: Path,
+    step: FrameStep,
+    finals: Finals,
+    prov: dict[str, Any],
+    timings: pd.DataFrame | None = None,
+) -> RunResult:
+    """Write a run folder's files (all but run.rrd) from a finished `FrameStep`, each
+    atomically, run.yaml (``prov``) last.
+
+    Args:
+        timings: timings.csv's table (default: `timings_frame` of the step's rows).
+    """
+    estimator = step.estimator
+    write_estimate(finals.causal, out, "trajectory")
+    write_estimate_npz(finals.causal, out / "estimate.npz")
     if estimator == "online":
-        write_estimate(main, out, "trajectory_smoothed")
-        write_estimate_npz(main, out / "estimate_smoothed.npz")
-    for name, e in finals.items():
+        write_estimate(finals.main, out, "trajectory_smoothed")
+        write_estimate_npz(finals.main, out / "estimate_smoothed.npz")
+    for name, e in finals.estimates.items():
         if name != estimator:
             write_estimate_npz(e, out / f"estimate_{name}.npz")
+    results = step.results
     with_pose = [m for m in results if m.pose is not None]
     write_tum(
         [m.t_s for m in with_pose],
@@ -377,90 +581,28 @@ def _run(
         out / "frontend_pose.tum",
     )
     write_measurements(results, out / "measurements.parquet", timings=False)
-    tdf = pd.DataFrame(timing_rows)
-    # a frontend stage that did not run took 0 ms; an estimator stage that did not happen
-    # (e.g. iSAM2's update during its warm-up) stays empty
-    front = [c for c in tdf.columns if c.startswith("frontend_")]
-    tdf[front] = tdf[front].fillna(0.0)
+    tdf = timings_frame(step.timing_rows) if timings is None else timings
     atomic_write(out / "timings.csv", lambda tmp: tdf.to_csv(tmp, index=False, float_format="%.3f"))
-    text = yaml.safe_dump(to_plain(cfg), sort_keys=False)
+    text = yaml.safe_dump(to_plain(step.config), sort_keys=False)
     atomic_write(out / "config.yaml", lambda tmp: Path(tmp).write_text(text))
-    prov = {
-        "satpose": _version(),
-        "sequence": str(sequence_path.resolve()),
-        "estimator": estimator,
-        "frames": len(seq),
-        "frames_with_pose": len(with_pose),
-        "bad_frames": bad.count,
-        "bad_frames_by_reason": bad.as_dict(),
-        "command": " ".join(sys.argv),
-    }
     atomic_write(
         out / "run.yaml", lambda tmp: Path(tmp).write_text(yaml.safe_dump(prov, sort_keys=False))
     )
-    others = {n: e for n, e in finals.items() if n != estimator}
+    others = {n: e for n, e in finals.estimates.items() if n != estimator}
     return RunResult(
         out=out,
         estimator=estimator,
-        estimate=causal,
+        estimate=finals.causal,
         measurements=results,
         others=others,
-        bad_frames=bad,
+        bad_frames=step.bad,
     )
 
 
-def _truth_pose(seq: Sequence, frame_index: int) -> Rigid3 | None:
-    if seq.truth is None:
+def _truth_pose(truth: GroundTruth | None, frame_index: int) -> Rigid3 | None:
+    if truth is None:
         return None
     try:
-        return seq.truth.pose(seq.truth.row_of_frame(frame_index))
+        return truth.pose(truth.row_of_frame(frame_index))
     except KeyError:
         return None
-
-
-def _record(
-    recorder: RunRecorder,
-    seq: Sequence,
-    k: int,
-    frame: Any,
-    m: FrameMeasurements,
-    estimators: dict[str, Any],
-    timings: dict[str, Any],
-) -> None:
-    """Log one frame: images, detections, the causal estimates so far."""
-    poses: dict[str, Rigid3 | None] = {
-        "per_frame": m.pose.left_cam_from_target if m.pose is not None else None
-    }
-    cov = None
-    spin: dict[str, float] = {}
-    for name, key in (("kalman", "kalman"), ("online", "isam2")):
-        est = estimators.get(name)
-        if est is None:
-            continue
-        try:
-            f = est.filtered()
-        except BackendError:
-            continue
-        if len(f) and int(f.frame[-1]) == frame.index:
-            poses[key] = f.left_cam_from_target[-1]
-            spin[key] = float(f.spin_rate_deg_per_frame(1.0 / seq.rate_hz)[-1])
-            if name == "online":
-                cov = f.pose_covariance[-1]
-    truth = _truth_pose(seq, frame.index)
-    if truth is not None and seq.truth is not None and seq.truth.angular_velocity is not None:
-        row = seq.truth.row_of_frame(frame.index)
-        spin["truth"] = float(
-            np.degrees(np.linalg.norm(seq.truth.angular_velocity[row])) / seq.rate_hz
-        )
-    images = {}
-    if recorder.config.images:
-        try:
-            images = {"left": frame.left(), "right": frame.right()}
-        except SatposeError:
-            images = {}
-    stage_ms = {
-        k2.removeprefix("frontend_"): v
-        for k2, v in timings.items()
-        if k2.startswith(("frontend_", "backend_")) and k2 != "frontend_total"
-    }
-    recorder.log_frame(frame.index, images, m, poses, cov, truth, spin, stage_ms)

@@ -9,12 +9,23 @@ kind, labelled with their track ids) and the estimated ring reprojected; the 3-D
 both cameras, the estimated and true target (ring, axes, landmark map), trajectories
 (truth, per-frame, kalman, iSAM2 filtered, smoothed) and the position covariance ellipsoid;
 time series of errors, spin rate and stage timings. Timeline: ``frame``.
+
+Compact files: the SDK's default micro-batching flushes every few milliseconds, and a frame
+takes far longer than that to process, so every ``log`` call used to become a one-row chunk
+(1,894 chunks for a 40-frame stereo run). A recording written to a file is batched per entity
+instead (`file_batcher`): an entity's rows accumulate until they reach the viewer's own chunk
+target (384 KiB or 4096 rows) or the recording is closed; series known only at the end go in
+with one ``send_columns`` call each. The content (entities, rows, blueprint) is unchanged;
+benchmarks/rerun_size.py measures chunks and size (docs/results/rerun_size.md). Streaming to a
+viewer (``spawn``) keeps short flushes so that the viewer follows the run frame by frame.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from datetime import timedelta
 from pathlib import Path
 from typing import Literal
 
@@ -26,6 +37,8 @@ from satpose.datasets.geometry import Rigid3, matrix_to_quat_xyzw
 from satpose.datasets.sequence import Calibration, TargetGeometry
 from satpose.frontend.conics import Ellipse, circle_to_conic, conic_to_ellipse
 from satpose.frontend.measurements import FrameMeasurements, LandmarkKind
+
+log = logging.getLogger(__name__)
 
 WORLD = "world"
 CAMERA = {"left": "world/camera/left", "right": "world/camera/right"}
@@ -54,6 +67,23 @@ KIND_COLORS = {
 }
 
 
+def file_batcher() -> rr.ChunkBatcherConfig:
+    """The SDK batching of a recording written to a file: an entity's rows accumulate into one
+    chunk until it holds 384 KiB or 4096 rows (the viewer's own compaction target, so that it
+    has nothing left to merge) or the recording is flushed at `RunRecorder.close`; the time
+    tick is effectively off. Rerun batches per entity, so a chunk never mixes entities."""
+    return rr.ChunkBatcherConfig(
+        flush_tick=timedelta(hours=24), flush_num_bytes=384 * 1024, flush_num_rows=4096
+    )
+
+
+def live_batcher() -> rr.ChunkBatcherConfig:
+    """The SDK batching while streaming to a viewer (``spawn``): flush every 100 ms, so that
+    the viewer shows each frame as it is processed (the file written alongside then has small
+    chunks again)."""
+    return rr.ChunkBatcherConfig(flush_tick=timedelta(milliseconds=100))
+
+
 @dataclass(frozen=True, kw_only=True)
 class RecordingConfig:
     """What goes into run.rrd.
@@ -62,11 +92,15 @@ class RecordingConfig:
         images: log the camera images (JPEG) every frame.
         jpeg_quality: JPEG quality of the logged images.
         orb_points: log ORB landmarks too (hundreds per frame at close range).
+        compact: batch each entity's rows into large chunks (`file_batcher`); False: the
+            SDK's default micro-batching (about one chunk per entity and frame). Ignored while
+            streaming to a viewer (``spawn``: `live_batcher`).
     """
 
     images: bool = True
     jpeg_quality: int = 80
     orb_points: bool = True
+    compact: bool = True
 
 
 def blueprint() -> rrb.Blueprint:
@@ -89,6 +123,13 @@ def blueprint() -> rrb.Blueprint:
     )
 
 
+def _errors(T: Rigid3, truth: Rigid3) -> tuple[float, float]:
+    """Position error [cm] and ring-normal error [deg] of one estimate (the normal, target z,
+    does not depend on the estimator's choice of the body x axis)."""
+    cos = float(np.clip(T.R[:, 2] @ truth.R[:, 2], -1.0, 1.0))
+    return 100.0 * float(np.linalg.norm(T.t - truth.t)), float(np.degrees(np.arccos(cos)))
+
+
 def _circle_points(T: Rigid3, radius: float, n: int = 96) -> np.ndarray:
     a = np.linspace(0, 2 * np.pi, n)
     return T.apply(np.c_[radius * np.cos(a), radius * np.sin(a), np.zeros(n)])
@@ -99,9 +140,31 @@ def _ellipse_strip(e: Ellipse, n: int = 96) -> np.ndarray:
     return np.vstack([p, p[:1]])
 
 
+DEFAULT_VIEWER = "rerun+http://127.0.0.1:9876/proxy"
+"""Where a viewer started by ``rerun`` (or ``--spawn``) listens by default."""
+
+
+def viewer_url(address: str) -> str:
+    """A Rerun viewer's gRPC URL from ``--connect``'s argument: a URL as is
+    (``rerun+http://host:9876/proxy``), ``HOST:PORT`` or ``HOST`` completed to one, ``""``
+    the local viewer's default (`DEFAULT_VIEWER`)."""
+    if not address:
+        return DEFAULT_VIEWER
+    if "://" in address:
+        return address
+    host, _, port = address.partition(":")
+    return f"rerun+http://{host or '127.0.0.1'}:{port or 9876}/proxy"
+
+
 class RunRecorder:
     """Writes run.rrd while the pipeline runs (the pipeline calls `log_frame` per frame and
-    `log_final` once), then `close`."""
+    `log_final` once), then `close`.
+
+    Args:
+        path: the recording file; always written, also while streaming to a viewer.
+        spawn: start a Rerun viewer and stream to it as well.
+        connect: also stream to the viewer at this gRPC URL (`viewer_url`).
+    """
 
     def __init__(
         self,
@@ -110,14 +173,27 @@ class RunRecorder:
         target: TargetGeometry | None = None,
         config: RecordingConfig | None = None,
         spawn: bool = False,
+        connect: str | None = None,
     ) -> None:
         self.config = config or RecordingConfig()
         self.calibration = calibration
         self.target = target
-        self.rec = rr.RecordingStream(application_id="satpose", recording_id=None)
-        self.rec.save(str(path))
+        self.viewers = [u for u in ([DEFAULT_VIEWER] if spawn else []) + [connect] if u]
+        if self.viewers:
+            batcher = live_batcher()
+        elif self.config.compact:
+            batcher = file_batcher()
+        else:
+            batcher = rr.ChunkBatcherConfig()  # the SDK's defaults
+        self.rec = rr.RecordingStream(
+            application_id="satpose", recording_id=None, batcher_config=batcher
+        )
+        # one stream, several sinks: spawn()/connect_grpc() alone would replace the file sink
+        sinks: list[rr.FileSink | rr.GrpcSink] = [rr.FileSink(str(path))]
         if spawn:
-            self.rec.spawn(connect=True)
+            self.rec.spawn(connect=False)
+        sinks += [rr.GrpcSink(u) for u in dict.fromkeys(self.viewers)]
+        self.rec.set_sinks(*sinks)
         self.rec.send_blueprint(blueprint())
         self._tracks: dict[str, list[np.ndarray]] = {name: [] for name in TRAJECTORIES}
         self._radius: float | None = None
@@ -226,16 +302,10 @@ class RunRecorder:
             rec.log(FAILURES, rr.TextLog("; ".join(m.failures), level=rr.TextLogLevel.WARN))
 
     def _log_errors(self, name: str, T: Rigid3, truth: Rigid3) -> None:
-        """Position error [cm] and ring-normal error [deg] of one estimate (the normal, target
-        z, does not depend on the estimator's choice of the body x axis)."""
-        self.rec.log(
-            f"{PLOTS}/error/position_cm/{name}",
-            rr.Scalars(100.0 * float(np.linalg.norm(T.t - truth.t))),
-        )
-        cos = float(np.clip(T.R[:, 2] @ truth.R[:, 2], -1.0, 1.0))
-        self.rec.log(
-            f"{PLOTS}/error/normal_deg/{name}", rr.Scalars(float(np.degrees(np.arccos(cos))))
-        )
+        """Position error [cm] and ring-normal error [deg] of one estimate (`_errors`)."""
+        pos_cm, normal_deg = _errors(T, truth)
+        self.rec.log(f"{PLOTS}/error/position_cm/{name}", rr.Scalars(pos_cm))
+        self.rec.log(f"{PLOTS}/error/normal_deg/{name}", rr.Scalars(normal_deg))
 
     def _log_detections(self, m: FrameMeasurements) -> None:
         rec = self.rec
@@ -342,18 +412,36 @@ class RunRecorder:
         poses: Sequence[Rigid3],
         truth: Sequence[Rigid3 | None] | None = None,
         spin_deg_per_frame: Sequence[float] | None = None,
+        t_s: Sequence[float] | None = None,
     ) -> None:
         """A whole trajectory known only at the end (the smoothed one): its line and its
-        error and spin series at every frame."""
-        rec = self.rec
-        for k, (i, T) in enumerate(zip(frames, poses, strict=True)):
-            rec.set_time("frame", sequence=int(i))
-            tk = truth[k] if truth is not None else None
-            if tk is not None:
-                self._log_errors(name, T, tk)
-            if spin_deg_per_frame is not None:
-                rec.log(f"{PLOTS}/spin/{name}", rr.Scalars(float(spin_deg_per_frame[k])))
-        rec.log(
+        error and spin series at every frame (``t_s``: the frames' times, for the ``time``
+        timeline), each series sent as one column."""
+        frame_idx = np.asarray(frames, dtype=np.int64)
+        times = None if t_s is None else np.asarray(t_s, dtype=float)
+
+        def send(entity: str, rows: np.ndarray, values: Sequence[float]) -> None:
+            if rows.size == 0:
+                return
+            indexes = [rr.TimeColumn("frame", sequence=frame_idx[rows])]
+            if times is not None:
+                indexes.append(rr.TimeColumn("time", duration=times[rows]))
+            self.rec.send_columns(
+                entity, indexes=indexes, columns=rr.Scalars.columns(scalars=np.asarray(values))
+            )
+
+        if truth is not None:
+            rows = [k for k, tk in enumerate(truth) if tk is not None]
+            errs = [_errors(poses[k], truth[k]) for k in rows]
+            send(f"{PLOTS}/error/position_cm/{name}", np.array(rows, int), [e[0] for e in errs])
+            send(f"{PLOTS}/error/normal_deg/{name}", np.array(rows, int), [e[1] for e in errs])
+        if spin_deg_per_frame is not None:
+            send(
+                f"{PLOTS}/spin/{name}",
+                np.arange(len(frame_idx)),
+                [float(r) for r in spin_deg_per_frame],
+            )
+        self.rec.log(
             f"{TRAJECTORY}/{name}",
             rr.LineStrips3D(
                 [np.array([T.t for T in poses])], colors=[COLORS.get(name, (255, 255, 255))]
@@ -362,5 +450,10 @@ class RunRecorder:
         )
 
     def close(self) -> None:
-        self.rec.flush()
+        """Flush and close every sink. A viewer that cannot be reached is a warning (run.rrd
+        is complete regardless), not an error."""
+        try:
+            self.rec.flush()
+        except RuntimeError as exc:
+            log.warning("Rerun viewer %s: %s", ", ".join(self.viewers), str(exc).splitlines()[0])
         self.rec.disconnect()

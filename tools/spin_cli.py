@@ -28,7 +28,8 @@ import csv
 import io
 import math
 from collections import Counter
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -39,7 +40,15 @@ from satpose.datasets.errors import SequenceError
 
 if TYPE_CHECKING:  # the frontend (OpenCV) loads only when the command runs
     from satpose.frontend.measurements import FrameMeasurements
-    from satpose.frontend.spin import SpinFit, SpinStep
+    from satpose.frontend.spin import SpinConfig, SpinFit, SpinStep
+    from satpose.tools.badframes import BadFrames
+
+
+def _bad_frames() -> BadFrames:
+    from satpose.tools.badframes import BadFrames
+
+    return BadFrames()
+
 
 SPIN_CSV_COLUMNS = ("t_s", "rate_deg_s", "sigma_deg_s", "status", "candidates_deg_s", "reason")
 
@@ -93,6 +102,8 @@ class SpinRun:
     steps: list[SpinStep]
     measurements: list[FrameMeasurements]
     files: list[Path]
+    rate_hz: float = 1.0
+    bad_frames: BadFrames = field(default_factory=lambda: _bad_frames())
 
 
 def run_spin_on(
@@ -108,20 +119,46 @@ def run_spin_on(
     from dataclasses import replace
 
     from satpose.datasets.config import load_config, to_plain
-    from satpose.datasets.sequence import load_sequence
-    from satpose.frontend.spin import SpinConfig, SpinFrontend
-    from satpose.tools.badframes import BadFrames, measure_frames
-    from satpose.tools.files import atomic_write, staged_output, write_measurements
+    from satpose.frontend.spin import SpinConfig
 
-    seq = load_sequence(sequence_path)
     config = load_config(SpinConfig, config_path) if config_path else SpinConfig()
     if max_rate_deg_s is not None:
         from satpose.frontend.spin import RateConfig
 
         if not max_rate_deg_s > 0:
-            raise SequenceError(seq.root, "--max-rate", f"must be positive, got {max_rate_deg_s}")
+            raise SequenceError(
+                Path(sequence_path), "--max-rate", f"must be positive, got {max_rate_deg_s}"
+            )
         rate_cfg = RateConfig(**{**to_plain(config.rate), "max_rate_deg_s": max_rate_deg_s})
         config = replace(config, rate=rate_cfg)
+    run = run_spin(sequence_path, out, config, overwrite=overwrite)
+    print(fold_text(config.rate.max_rate_deg_s, config.rate.half_turn, run.rate_hz))
+    print(rate_series_text(run.steps))
+    print(f"{summary_text(run.steps)}; wrote {', '.join(str(f) for f in run.files)}")
+    if run.bad_frames.count:
+        print(run.bad_frames.summary(len(run.measurements)))
+    return run
+
+
+def run_spin(
+    sequence_path: Path,
+    out: Path,
+    config: SpinConfig,
+    *,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> SpinRun:
+    """The spin frontend with ``config`` over a whole sequence; writes the result files (see
+    the module docstring) and returns every frame's step, without printing (`run_spin_on`
+    prints). ``progress(done, total)`` after each frame (it may stop the run by raising: the
+    output folder is then not written)."""
+    from satpose.datasets.config import to_plain
+    from satpose.datasets.sequence import load_sequence
+    from satpose.frontend.spin import SpinFrontend
+    from satpose.tools.badframes import BadFrames, measure_frames
+    from satpose.tools.files import atomic_write, staged_output, write_measurements
+
+    seq = load_sequence(sequence_path)
     n = config.rate.window_frames
     if len(seq) < n:
         raise SequenceError(
@@ -133,7 +170,7 @@ def run_spin_on(
     frontend = SpinFrontend(seq.calibration.left, config, hook=steps.append)
     bad = BadFrames(seq.root)
     with staged_output(out, overwrite, marker="spin.csv", what="a spin") as stage:
-        results = measure_frames(seq, "spin", frontend.process_frame, bad)
+        results = measure_frames(seq, "spin", frontend.process_frame, bad, progress)
         names = ["spin.csv", "spin_angles.csv", "measurements.parquet", "config.yaml", "spin.png"]
         atomic_write(stage / "spin.csv", lambda tmp: Path(tmp).write_text(spin_csv(steps)))
         atomic_write(stage / "spin_angles.csv", lambda tmp: Path(tmp).write_text(angles_csv(steps)))
@@ -149,12 +186,7 @@ def run_spin_on(
             truth = (seq.truth.t_s, np.degrees(np.linalg.norm(seq.truth.angular_velocity, axis=1)))
         atomic_write(stage / "spin.png", lambda tmp: plot_spin(steps, tmp, seq.name, truth))
     files = [out / name for name in names]
-    print(fold_text(config.rate.max_rate_deg_s, config.rate.half_turn, seq.rate_hz))
-    print(rate_series_text(steps))
-    print(f"{summary_text(steps)}; wrote {', '.join(str(f) for f in files)}")
-    if bad.count:
-        print(bad.summary(len(results)))
-    return SpinRun(steps, results, files)
+    return SpinRun(steps, results, files, rate_hz=seq.rate_hz, bad_frames=bad)
 
 
 def fold_text(max_rate_deg_s: float | None, half_turn: bool, rate_hz: float) -> str:

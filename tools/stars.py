@@ -26,12 +26,14 @@ from satpose.datasets.errors import SatposeError, SequenceError
 from satpose.datasets.events import Events
 from satpose.datasets.geometry import matrix_to_quat_xyzw, matrix_to_rotvec
 from satpose.datasets.sequence import Frame, load_calibration, load_sequence
+from satpose.frontend.star_sensor import Thresholds
 from satpose.frontend.stars import (
     ARCSEC,
     AttitudeSolution,
     StarTracker,
     StarTrackerConfig,
     frame_spots,
+    measure_thresholds,
     relative_rotation_bearings,
     run_event_tracker,
 )
@@ -84,7 +86,7 @@ def open_star_sequence(
     return load_calibration(root / "calib.yaml").left, ()
 
 
-EVENT_SENSOR_KEYS = ("contrast_threshold", "threshold_sigma", "psf_sigma_px")
+EVENT_SENSOR_KEYS = ("contrast_threshold", "threshold_sigma", "psf_sigma_px", "refractory_s")
 """Keys of the optional ``event_sensor:`` block of calib.yaml or sequence.yaml: the event
 sensor's calibration the spot fit assumes (`StarTrackerConfig` fields of the same names)."""
 
@@ -125,12 +127,69 @@ def event_sensor_calibration(seq_dir: Path) -> dict[str, float]:
                 not ok
                 or not math.isfinite(value)
                 or value < 0
-                or (value == 0 and key != "threshold_sigma")
+                or (value == 0 and key not in ("threshold_sigma", "refractory_s"))
             ):
                 raise SequenceError(
                     path, f"event_sensor.{key}", f"must be a positive number, got {value!r}"
                 )
             out[key] = float(value)
+    return out
+
+
+def refractory_record(tracker: StarTracker, stated: bool) -> dict[str, Any]:
+    """config.yaml's record of the dead time: what the stream showed and what the spot fit's
+    levels used (`frontend.stars.stream_levels_dead_time`)."""
+    used = round(float(tracker.refractory_used_s), 7)
+    reset = tracker.dead_time_reset
+    ladder = {
+        True: "reset (each step C plus the rise while blind)",
+        False: "plain (the fits preferred whole thresholds)",
+        None: "plain (no dead time used: dead_time_levels off, or too few fits)",
+    }[reset if used > 0 else None]
+    if reset is not None:
+        c = tracker.dead_time_costs
+        ladder += f"; fit costs reset {c[0]:.0f}, plain {c[1]:.0f}"
+    r = tracker.refractory
+    if stated or r is None:
+        src = "stated (event_sensor.refractory_s)" if stated else "configured"
+        return {"used_s": used, "source": src, "levels": ladder}
+    out: dict[str, Any] = {
+        "measured_s": round(float(r.refractory_s), 7),
+        "sigma_s": round(float(r.sigma_s), 7),
+        "identified": bool(r.identified),
+        "edge_blur_s": round(float(r.jitter_s), 7),
+        "intervals": int(r.intervals),
+        "used_s": used,
+        "levels": ladder,
+    }
+    out["source"] = r.source + ("" if r.identified else "; 0 used")
+    return out
+
+
+def threshold_record(
+    th: Thresholds | None, config: StarTrackerConfig, stated: bool
+) -> dict[str, Any]:
+    """config.yaml's record of the contrast threshold: measured (`measure_thresholds`) and
+    used (the configured or stated one)."""
+    out: dict[str, Any] = {
+        "used": float(config.contrast_threshold),
+        "source": "stated (event_sensor.contrast_threshold)" if stated else "configured",
+    }
+    if th is None:
+        out["measured"] = "not identified (too few isolated identified stars or magnitudes)"
+        return out
+    out["measured"] = {
+        "on": round(th.c_on, 4),
+        "off": round(th.c_off, 4),
+        "sigma_on": round(th.sigma_on, 4),
+        "sigma_off": round(th.sigma_off, 4),
+        "mean": round(th.c_mean, 4),
+        "sigma_mean": round(th.sigma_mean, 4),
+        "stars": th.stars,
+        "passes": th.passes,
+        "magnitudes": [round(th.mag_range[0], 2), round(th.mag_range[1], 2)],
+        "dead_time_gain": round(th.refractory_gain, 4),
+    }
     return out
 
 
@@ -313,6 +372,10 @@ def track_sequence(
             measured["hot_pixels"] = int(st.hot_pixels.size)
             measured["hot_pixel_events"] = int(st.hot_events)
             measured["events_kept_by_noise_filter"] = round(float(st.kept_fraction), 4)
+        measured["refractory"] = refractory_record(tracker, "refractory_s" in stated)
+        measured["contrast_threshold"] = threshold_record(
+            measure_thresholds(tracker, sols), config, "contrast_threshold" in stated
+        )
     return TrackResult(
         sols,
         np.array([s.t_s for s in sols]),

@@ -242,14 +242,12 @@ def config_from_args(args: argparse.Namespace) -> StarSolveConfig:
         raise StarImageError("give --fov-deg (with --fov-tolerance-deg) or --fov-range, not both")
     if args.fov_tolerance_deg is not None and args.fov_deg is None:
         raise StarImageError("--fov-tolerance-deg needs --fov-deg")
+    kw: dict[str, Any] = {"fit_distortion": not args.no_distortion}
     if args.fov_deg is not None:
         tol = args.fov_tolerance_deg if args.fov_tolerance_deg is not None else 0.1 * args.fov_deg
-        fov_range = (args.fov_deg - tol, args.fov_deg + tol)
+        kw["fov_ranges_deg"] = ((args.fov_deg - tol, args.fov_deg + tol),)
     elif args.fov_range is not None:
-        fov_range = tuple(args.fov_range)
-    else:
-        fov_range = c.fov_range_deg
-    kw: dict[str, Any] = {"fov_range_deg": fov_range, "fit_distortion": not args.no_distortion}
+        kw["fov_ranges_deg"] = (tuple(args.fov_range),)
     if args.epoch_yr is not None:
         kw["epoch_yr"] = args.epoch_yr
     return replace(c, **kw)
@@ -282,7 +280,7 @@ def register_solve(sub: Any) -> None:
         type=float,
         nargs=2,
         metavar=("MIN", "MAX"),
-        help="horizontal field of view range [deg] (default 8 25 when no --fov-deg)",
+        help="horizontal field of view range [deg] (default: 8-25, then 25-70, then 3-8)",
     )
     s.add_argument("--epoch-yr", type=float, help="observation epoch for proper motions")
     s.add_argument("--no-distortion", action="store_true", help="do not fit radial distortion")

@@ -209,7 +209,12 @@ def test_event_sensor_calibration_keys(tmp_path: Path) -> None:
     )
     (tmp_path / "calib.yaml").write_text("event_sensor: {psf_sigma_px: 0.9}\n", encoding="utf-8")
     assert event_sensor_calibration(tmp_path) == {"contrast_threshold": 0.3, "psf_sigma_px": 0.9}
-    for bad, key in (("{refractory: 1}", "event_sensor.refractory"), ("{psf_sigma_px: 0}", "psf")):
+    bads = (
+        ("{refractory: 1}", "event_sensor.refractory"),
+        ("{psf_sigma_px: 0}", "psf"),
+        ("{refractory_s: -1e-4}", "event_sensor.refractory_s"),
+    )
+    for bad, key in bads:
         (tmp_path / "calib.yaml").write_text(f"event_sensor: {bad}\n", encoding="utf-8")
         with pytest.raises(SequenceError, match=key) as info:
             event_sensor_calibration(tmp_path)
@@ -290,7 +295,9 @@ def test_track_records_what_it_measured(tmp_path: Path) -> None:
     """config.yaml of `satpose stars track` records what the tracker measured on a second-
     model recording (seeded, 0.4 s): the hot pixels it dropped (the simulator made 61,
     0.02 % of 640x480; a few low-rate ones are not told from quiet pixels) and a PSF
-    sigma; with psf_sigma_px stated in calib.yaml, the stated one."""
+    sigma; the dead time from the hot pixels' intervals (0.3 ms simulated, 20 us jitter:
+    within 60 us) and the contrast threshold's record (measured or not, and used); with
+    psf_sigma_px and refractory_s stated in calib.yaml, the stated ones."""
     from dataclasses import replace
 
     from satpose.datasets.star_scenarios import render_star_sequence
@@ -302,10 +309,17 @@ def test_track_records_what_it_measured(tmp_path: Path) -> None:
     measured = yaml.safe_load((out / "config.yaml").read_text(encoding="utf-8"))["measured"]
     assert 45 <= measured["hot_pixels"] <= 61 and measured["hot_pixel_events"] > 0
     assert measured["psf_sigma_px"] > 0
+    ref = measured["refractory"]
+    assert ref["source"] == "hot pixels" and ref["identified"]
+    assert abs(ref["measured_s"] - 3e-4) <= 6e-5 and ref["used_s"] == 0.0  # ladder off
+    assert measured["contrast_threshold"]["used"] == 0.25
+    assert "measured" in measured["contrast_threshold"]
     calib = yaml.safe_load((seq / "calib.yaml").read_text(encoding="utf-8"))
-    calib["event_sensor"] = {"psf_sigma_px": 1.1}
+    calib["event_sensor"] = {"psf_sigma_px": 1.1, "refractory_s": 0.0}
     (seq / "calib.yaml").write_text(yaml.safe_dump(calib), encoding="utf-8")
     assert main(["stars", "track", str(seq), "--out", str(tmp_path / "o2")]) == 0
     cfg = yaml.safe_load((tmp_path / "o2" / "config.yaml").read_text(encoding="utf-8"))
     assert cfg["measured"]["psf_sigma_source"] == "stated"
     assert cfg["frontend"]["psf_sigma_px"] == 1.1 == cfg["measured"]["psf_sigma_px"]
+    assert cfg["measured"]["refractory"]["used_s"] == 0.0
+    assert cfg["measured"]["refractory"]["source"].startswith("stated")

@@ -43,19 +43,19 @@ def _diverge_at(monkeypatch: pytest.MonkeyPatch, frame: int) -> None:
     """The refinement of the ring circle raises OverflowError in ``frame`` (as it did on a
     tumbling render before it was bounded): an unexpected exception inside a stage."""
     current = {"frame": -1}
-    process_frame = StereoFrontend.process_frame
+    process = StereoFrontend.process  # every driver's way in (run, frontend, track --live)
     refine_circle = frontend_pipeline.refine_circle
 
-    def tracked(self: StereoFrontend, fr):  # type: ignore[no-untyped-def]
-        current["frame"] = fr.index
-        return process_frame(self, fr)
+    def tracked(self: StereoFrontend, index, *args):  # type: ignore[no-untyped-def]
+        current["frame"] = index
+        return process(self, index, *args)
 
     def diverging(*args, **kwargs):  # type: ignore[no-untyped-def]
         if current["frame"] == frame:
             raise OverflowError("math range error")
         return refine_circle(*args, **kwargs)
 
-    monkeypatch.setattr(StereoFrontend, "process_frame", tracked)
+    monkeypatch.setattr(StereoFrontend, "process", tracked)
     monkeypatch.setattr(frontend_pipeline, "refine_circle", diverging)
 
 
