@@ -4,7 +4,9 @@ projections (no image): every frame's consistent poses from the exact image
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +19,7 @@ from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
 from satpose.frontend.bracket import BracketGeometry
 from satpose.frontend.bracket_lines import (
     PartialHypothesis,
+    PartialImageModel,
     StrutDetectorConfig,
     noise_free_hypotheses,
     refine_partial_pose,
@@ -132,12 +135,16 @@ def test_motion_consistent_wrong_labelling_reports_nothing() -> None:
     decisions = lab.decide()
     assert all(d.candidate is None for d in decisions), [d.log_lr for d in decisions]
     assert all(d.reason.startswith("labelling ambiguous over frames") for d in decisions)
-    # a wrong labelling's track explains the motion: fit within its degrees of freedom
+    # a wrong labelling's track explains the motion: fit within its degrees of freedom (its
+    # fitted poses: a track may take a frame's quantities from its own prediction)
     wrong = [
         tr
         for tr in lab.tracks
         if len(tr.picks) == len(truth)
-        and all(_angle_deg(hyps[k][j].pose, truth[k]) > 20.0 for k, j in tr.picks.items())
+        and all(
+            _angle_deg(p, truth[k]) > 20.0
+            for k, p in zip(sorted(tr.picks), tr.fit.poses, strict=True)
+        )
     ]
     assert wrong
     assert min(tr.fit.error for tr in wrong) < 0.5 * wrong[0].fit.dof
@@ -205,3 +212,63 @@ def test_bad_input() -> None:
             ),
             image_chi2=math.nan,
         )
+
+
+def _rendered_seed2() -> tuple[list[float], list[list[Candidate]], list[Rigid3], np.ndarray]:
+    """Tuning seed 2 of the bracket family as `satpose bracket` measured it (the rendered
+    images' candidates, tests/data/bracket_labelling/seed2_candidates.json): times, each
+    frame's candidates, the truth and the bracket's centroid."""
+    path = Path(__file__).parents[1] / "data" / "bracket_labelling" / "seed2_candidates.json"
+    data = json.loads(path.read_text())
+    V, K_, frac = np.array(data["vertices"]), np.array(data["K"]), float(data["fraction"])
+    times, cands, truth = [], [], []
+    for fr in data["frames"]:
+        times.append(float(fr["t_s"]))
+        truth.append(Rigid3(R=np.array(fr["truth"]["R"]), t=np.array(fr["truth"]["t"])))
+        cands.append(
+            [
+                Candidate(
+                    pose=PoseMeasurement(
+                        left_cam_from_target=Rigid3(R=np.array(c["R"]), t=np.array(c["t"])),
+                        covariance=np.array(c["covariance"]),
+                        method=PoseMethod.BRACKET,
+                    ),
+                    image=PartialImageModel(np.array(c["z"]), np.array(c["sigma"]), V, K_, frac),
+                    image_chi2=float(c["image_chi2"]),
+                    image_dim=int(c["image_dim"]),
+                    group=int(c["group"]),
+                )
+                for c in fr["candidates"]
+            ]
+        )
+    return times, cands, truth, V.mean(axis=0)
+
+
+def test_rendered_seed2_true_track_kept_and_nothing_mislabelled() -> None:
+    """Tuning seed 2's rendered candidates, which once had frames 6-11 reported on a
+    neighbouring P3P root (up to 30 deg off): in frames 4-7 the true pair of roots has
+    turned complex and the wrong root lies within the gate, and from frame 8 on the true pose
+    lies 17-30 deg from the wrong track's prediction. The true hypothesis must be kept as a
+    track over every frame (fitted from the predictions, continued by the refit's
+    chi-square), and no frame reported more than 20 deg (the benchmark's mislabel) off."""
+    times, cands, truth, centre = _rendered_seed2()
+    lab = SequenceLabeller(centre)
+    online = []
+    for t, c in zip(times, cands, strict=True):
+        lab.step(t, c)
+        online.append(lab.online_decision())
+    # the true hypothesis: a track over all frames, within 8 deg (the rival distance) of the
+    # truth at each
+    assert any(
+        len(tr.picks) == len(truth)
+        and all(
+            _angle_deg(p, truth[k]) < 8.0
+            for k, p in zip(sorted(tr.picks), tr.fit.poses, strict=True)
+        )
+        for tr in lab.tracks
+    )
+    for d in [*lab.decide(), *online]:
+        if d.pose is not None:
+            assert _angle_deg(d.pose, truth[d.frame]) < 20.0, (d.frame, d.log_lr)
+    # where the wrong root is more than 20 deg off (frames 9-11), nothing is reported
+    assert all(d.candidate is None for d in lab.decide()[9:])
