@@ -19,7 +19,8 @@
 The paper's view (base strut and the first part of the side struts, the apex hidden behind a
 solar array with its own grid of straight lines): `detect_partial` (hypothesise and verify
 with the known visible fraction and strut width; an ambiguous frame is refused) and
-`PartialTracker` (the labelling settled over frames); docs/bracket.md, "The paper's view".
+`partial_hypotheses` (every consistent pose weighed for the decision over frames,
+`satpose.backend.labelling`); docs/bracket.md, "The paper's view".
 
 No truth is read: only the image, the intrinsics and the bracket's known geometry.
 """
@@ -34,16 +35,19 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from satpose.datasets.geometry import Rigid3
+from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
 from satpose.frontend.bracket import (
     BracketConfig,
     BracketGeometry,
     BracketObservation,
     BracketResult,
+    absolute_orientation,
+    incentre,
     p3p_depths,
     project,
     solve_bracket,
     strut_apex,
+    triangle_sides,
 )
 
 
@@ -124,6 +128,8 @@ class StrutDetectorConfig:
     gate_rel: float = 0.25
     rival_deg: float = 8.0
     rival_rel: float = 0.05
+    vertex_sigma_px: float = 2.0
+    direction_sigma_deg: float = 0.35
 
 
 @dataclass(frozen=True)
@@ -160,7 +166,10 @@ class StrutDetection:
         hypotheses: how many hypotheses were solved.
         alternatives: `detect_partial` without a prediction: one detection per distinct
             consistent pose, best first (several: the frame is refused as ambiguous; they
-            are the candidates `PartialTracker` follows over frames).
+            are the candidates the decision over frames weighs, `partial_hypotheses`).
+        image_chi2: `detect_partial`: the verification's misfit of this hypothesis (squared
+            normalised misfits of the visible strut ends and the strut widths; `_verify`),
+            NaN otherwise.
     """
 
     observation: BracketObservation | None
@@ -171,6 +180,7 @@ class StrutDetection:
     reason: str = ""
     hypotheses: int = field(default=0)
     alternatives: tuple[StrutDetection, ...] = ()
+    image_chi2: float = math.nan
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -800,6 +810,435 @@ def _within_gate(
     )
 
 
+def partial_image_quantities(
+    pose: Rigid3, vertices: np.ndarray, K: np.ndarray, fraction: float, stubs: bool = True
+) -> np.ndarray:
+    """What `detect_partial` measures, as functions of the pose: ``p1, p2`` [px], the image
+    directions of the struts ``P1P5``, ``P2P5`` at their base vertices [rad] and (``stubs``
+    and ``fraction`` < 1) the lengths of the visible stubs [px]; (6,) or (8,)."""
+    V = np.asarray(vertices, dtype=float)
+    ends = np.array([V[0] + fraction * (V[2] - V[0]), V[1] + fraction * (V[2] - V[1])])
+    px = project(pose, np.vstack([V, ends]), K)
+    d1 = px[2] - px[0]
+    d2 = px[2] - px[1]
+    out = [*px[0], *px[1], math.atan2(d1[1], d1[0]), math.atan2(d2[1], d2[0])]
+    if stubs and fraction < 1:
+        out += [float(np.linalg.norm(px[3] - px[0])), float(np.linalg.norm(px[4] - px[1]))]
+    return np.array(out)
+
+
+def partial_pose_covariance(
+    pose: Rigid3,
+    vertices: np.ndarray,
+    K: np.ndarray,
+    fraction: float,
+    sigma_px: float,
+    sigma_dir_rad: float,
+    sigma_end_px: float | None = None,
+) -> np.ndarray:
+    """Covariance (6x6, ``[rotation (rad), translation (m)]``, right perturbation ``T Exp(xi)``,
+    the `PoseMeasurement` convention) of the pose from `partial_image_quantities` with white
+    errors: ``p1``, ``p2`` (``sigma_px`` per coordinate), the two strut directions
+    (``sigma_dir_rad``) and, with ``sigma_end_px`` and ``fraction`` < 1, the two stub lengths;
+    exact bracket. Without the stub lengths the pose is exactly determined by the six numbers
+    and this is the first-order covariance of each P3P solution (every solution at its own
+    pose); with them it is the Cramer-Rao bound. ``(J^T W J)^-1`` by central differences."""
+    stubs = sigma_end_px is not None and fraction < 1
+    J = []
+    eps = 1e-6
+    for i in range(6):
+        e = np.zeros(6)
+        e[i] = eps
+
+        def moved(sign: float, e: np.ndarray = e) -> Rigid3:
+            d = Rigid3(R=rotvec_to_matrix(sign * e[:3]), t=sign * e[3:])
+            return pose @ d
+
+        hp = partial_image_quantities(moved(1.0), vertices, K, fraction, stubs)
+        hm = partial_image_quantities(moved(-1.0), vertices, K, fraction, stubs)
+        d = hp - hm
+        d[4:6] = (d[4:6] + math.pi) % (2 * math.pi) - math.pi  # angles: no wrap at +-pi
+        J.append(d / (2 * eps))
+    Jm = np.array(J).T
+    sig = [sigma_px] * 4 + [sigma_dir_rad] * 2 + ([sigma_end_px] * 2 if stubs else [])
+    W = np.diag(1.0 / np.square(np.asarray(sig, dtype=float)))
+    C = np.linalg.pinv(Jm.T @ W @ Jm)
+    return 0.5 * (C + C.T)
+
+
+def partial_measured_quantities(obs: BracketObservation, fraction: float) -> np.ndarray:
+    """`partial_image_quantities` as measured: ``p1, p2``, the directions ``p1 -> p4`` and
+    ``p2 -> p3`` and (``fraction`` < 1) the stub lengths ``|p4 - p1|``, ``|p3 - p2|``."""
+    p1, p2, p3, p4 = obs.points()
+    d1, d2 = p4 - p1, p3 - p2
+    out = [*p1, *p2, math.atan2(d1[1], d1[0]), math.atan2(d2[1], d2[0])]
+    if fraction < 1:
+        out += [float(np.linalg.norm(d1)), float(np.linalg.norm(d2))]
+    return np.array(out)
+
+
+def _quantity_sigmas(
+    z: np.ndarray, sigma_px: float, sigma_dir_rad: float, cfg: StrutDetectorConfig
+) -> np.ndarray:
+    ends = [cfg.end_sigma_px + cfg.end_sigma_rel * float(x) for x in z[6:]]
+    return np.array([sigma_px] * 4 + [sigma_dir_rad] * 2 + ends)
+
+
+@dataclass(frozen=True)
+class PartialImageModel:
+    """The whitened misfit of one frame's measured quantities (`partial_measured_quantities`)
+    as a function of the pose: ``r(T) = (z - h(T)) / sigma`` with ``h`` =
+    `partial_image_quantities`, noise ``sigma_px`` per vertex coordinate, ``sigma_dir_rad``
+    per strut direction and the verification's ``end_sigma_px + end_sigma_rel * length`` per
+    stub length. ``residual_and_jacobian`` is what a smoother needs to weigh the image itself
+    (not a Gaussian approximation of the pose) against the motion (`satpose.backend.labelling`):
+    near a double P3P root the likelihood of the pose is far from Gaussian."""
+
+    z: np.ndarray
+    sigma: np.ndarray
+    vertices: np.ndarray
+    K: np.ndarray
+    fraction: float
+
+    @staticmethod
+    def of(
+        z: np.ndarray,
+        vertices: np.ndarray,
+        K: np.ndarray,
+        fraction: float,
+        config: StrutDetectorConfig,
+    ) -> PartialImageModel:
+        """The model of quantities ``z`` with ``config``'s noise levels."""
+        zz = np.asarray(z, dtype=float)
+        sig = _quantity_sigmas(
+            zz, config.vertex_sigma_px, math.radians(config.direction_sigma_deg), config
+        )
+        return PartialImageModel(zz, sig, np.asarray(vertices, float), np.asarray(K), fraction)
+
+    @property
+    def dim(self) -> int:
+        return len(self.z)
+
+    def residual(self, pose: Rigid3) -> np.ndarray:
+        """Whitened ``(z - h(pose)) / sigma``, angles wrapped."""
+        r = self.z - partial_image_quantities(
+            pose, self.vertices, self.K, self.fraction, len(self.z) > 6
+        )
+        r[4:6] = (r[4:6] + math.pi) % (2 * math.pi) - math.pi
+        return r / self.sigma
+
+    def residual_and_jacobian(self, pose: Rigid3) -> tuple[np.ndarray, np.ndarray]:
+        """``r`` and ``dr/dxi`` (m x 6) for the right perturbation ``pose Exp(xi)``,
+        ``xi = [rotation, translation]`` (analytic: ``dP/dxi = [-R [X]x, R]`` for a model
+        point ``X`` seen at ``P = R X + t``, through the pinhole and the quantities)."""
+        V = self.vertices
+        f = self.fraction
+        X = np.array([V[0], V[1], V[2], V[0] + f * (V[2] - V[0]), V[1] + f * (V[2] - V[1])])
+        R, t = pose.R, pose.t
+        P = X @ R.T + t
+        fx, fy = float(self.K[0, 0]), float(self.K[1, 1])
+        x, y, zc = P[:, 0], P[:, 1], P[:, 2]
+        u = np.stack([fx * x / zc + self.K[0, 2], fy * y / zc + self.K[1, 2]], axis=1)
+        # d(pixel)/dP (5, 2, 3) and dP/dxi (5, 3, 6)
+        dU = np.zeros((5, 2, 3))
+        dU[:, 0, 0] = fx / zc
+        dU[:, 0, 2] = -fx * x / zc**2
+        dU[:, 1, 1] = fy / zc
+        dU[:, 1, 2] = -fy * y / zc**2
+        dP = np.zeros((5, 3, 6))
+        RX = np.einsum("ij,njk->nik", R, _skews(X))
+        dP[:, :, :3] = -RX
+        dP[:, :, 3:] = R
+        Ju = np.einsum("nab,nbc->nac", dU, dP)  # (5, 2, 6)
+        h = [u[0, 0], u[0, 1], u[1, 0], u[1, 1]]
+        J = [Ju[0, 0], Ju[0, 1], Ju[1, 0], Ju[1, 1]]
+        for a in (0, 1):  # strut directions toward the apex
+            d = u[2] - u[a]
+            dd = Ju[2] - Ju[a]
+            h.append(math.atan2(d[1], d[0]))
+            J.append((d[0] * dd[1] - d[1] * dd[0]) / float(d @ d))
+        if self.dim > 6:
+            for a, e in ((0, 3), (1, 4)):  # stub lengths
+                d = u[e] - u[a]
+                n = float(np.linalg.norm(d))
+                h.append(n)
+                J.append((d[0] * (Ju[e, 0] - Ju[a, 0]) + d[1] * (Ju[e, 1] - Ju[a, 1])) / n)
+        r = self.z - np.array(h)
+        r[4:6] = (r[4:6] + math.pi) % (2 * math.pi) - math.pi
+        return r / self.sigma, -np.array(J) / self.sigma[:, None]
+
+
+def _skews(v: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) cross-product matrices of the rows of ``v`` (n, 3)."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
+def _moved(T: Rigid3, xi: np.ndarray) -> Rigid3:
+    """``T`` perturbed on the right by ``xi = [rotation, translation]`` (first order equal to
+    ``T Exp(xi)``)."""
+    return T @ Rigid3(R=rotvec_to_matrix(xi[:3]), t=xi[3:])
+
+
+def refine_partial_pose(
+    pose: Rigid3, model: PartialImageModel, iterations: int = 5
+) -> tuple[Rigid3, np.ndarray, float]:
+    """The pose that best fits every measured quantity of ``model``, started from ``pose``
+    (a P3P solution, which fits ``p1, p2`` and the strut directions exactly and ignores the
+    stub lengths): Gauss-Newton with step halving. Returns ``(pose, covariance (6x6,
+    [rotation, translation], right perturbation), chi2)``: the local maximum of this frame's
+    likelihood, its first-order covariance and the residual chi-square (``model.dim - 6``
+    degrees of freedom; without the stub lengths the pose is exactly determined: chi2 0)."""
+    T = pose
+    r, J = model.residual_and_jacobian(T)
+    for _ in range(iterations):
+        # r(T Exp(d)) ~ r + J d
+        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        # a step along the weakly determined tilt can be long: halve it until it helps
+        for _halving in range(8):
+            T_new = _moved(T, step)
+            r_new = model.residual(T_new)
+            if float(r_new @ r_new) <= float(r @ r):
+                break
+            step = 0.5 * step
+        else:
+            break
+        done = float(r @ r) - float(r_new @ r_new) < 1e-10
+        T = T_new
+        r, J = model.residual_and_jacobian(T)
+        if done:
+            break
+    C = np.linalg.pinv(J.T @ J)
+    return T, 0.5 * (C + C.T), float(r @ r)
+
+
+def width_chi2(
+    struts: tuple[Strut, Strut, Strut],
+    pose: Rigid3,
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    config: StrutDetectorConfig,
+) -> float:
+    """The strut widths' part of `_verify`'s misfit (2 degrees of freedom: three widths, one
+    common scale); inf when they fail the check, 0 without a known strut radius."""
+    if config.strut_radius_m is None:
+        return 0.0
+    obs = BracketObservation(
+        p1_px=struts[0].end(0), p2_px=struts[0].end(1), p3_px=None, p4_px=None, sigma_px=1.0
+    )
+    return _verify(obs, struts, pose, geometry, K, 1.0, config.strut_radius_m, config)[0]
+
+
+@dataclass(frozen=True)
+class PartialHypothesis:
+    """One consistent pose of a frame in the paper's view, weighed for the decision over
+    frames (`satpose.backend.labelling`).
+
+    Attributes:
+        pose: the per-frame pose that is reported if this hypothesis is chosen (the
+            detector's P3P / least-squares solution).
+        refined: the local maximum of the likelihood of every measured quantity near
+            ``pose`` (`refine_partial_pose`).
+        covariance: its 6x6 covariance (``[rotation, translation]``, right perturbation).
+        image_chi2: the misfit of the over-determined quantities at ``refined``: the stub
+            lengths (fraction < 1) and the strut widths.
+        image_dim: their number (2 per kind).
+        model: the frame's measured quantities as a function of the pose.
+        width_chi2: the strut widths' part of ``image_chi2`` (2 dof with a known radius).
+        detection: the detection it came from (None: noise-free).
+    """
+
+    pose: Rigid3
+    refined: Rigid3
+    covariance: np.ndarray
+    image_chi2: float
+    image_dim: int
+    model: PartialImageModel
+    width_chi2: float = 0.0
+    detection: StrutDetection | None = None
+
+
+def _weigh(
+    poses: list[tuple[Rigid3, StrutDetection | None]],
+    obs: list[BracketObservation],
+    struts: list[tuple[Strut, Strut, Strut]],
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    fraction: float,
+    cfg: StrutDetectorConfig,
+) -> list[PartialHypothesis]:
+    """`PartialHypothesis` of each pose; poses that refine to the same one (1 deg / 1 % of
+    the range) are one hypothesis, represented by the pose nearest its refinement."""
+    V = geometry.vertices_m
+    ctr = V.mean(axis=0)
+    out: list[PartialHypothesis] = []
+    for (pose, det), o, st in zip(poses, obs, struts, strict=True):
+        model = PartialImageModel.of(partial_measured_quantities(o, fraction), V, K, fraction, cfg)
+        ref, C, chi = refine_partial_pose(pose, model)
+        w = width_chi2(st, ref, geometry, K, cfg)
+        if not math.isfinite(w):
+            w = width_chi2(st, pose, geometry, K, cfg)  # the refinement left the width check
+        dim = (2 if fraction < 1 else 0) + (2 if cfg.strut_radius_m is not None else 0)
+        h = PartialHypothesis(pose, ref, C, chi + w, dim, model, w, det)
+        range_m = float(np.linalg.norm(ref.apply(ctr[None])[0]))
+        same = [
+            i
+            for i, q in enumerate(out)
+            if _rotation_deg(ref, q.refined) <= 1.0
+            and _pose_distance(ref, q.refined, ctr)[1] <= 0.01 * range_m
+        ]
+        if not same:
+            out.append(h)
+            continue
+        q = out[same[0]]
+        if sum(_pose_distance(pose, ref, ctr)) < sum(_pose_distance(q.pose, q.refined, ctr)):
+            out[same[0]] = h
+    return out
+
+
+def partial_hypotheses(
+    det: StrutDetection,
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    fraction: float,
+    config: StrutDetectorConfig | None = None,
+    extra: list[StrutDetection] | None = None,
+) -> list[PartialHypothesis]:
+    """Every consistent pose of a `detect_partial` result (its ``alternatives``, or the one
+    pose) and of ``extra`` detections of the same image (searches near predicted poses),
+    weighed with ``config.vertex_sigma_px`` / ``direction_sigma_deg`` and the verification's
+    stub-end noise; [] when the frame has none."""
+    cfg = StrutDetectorConfig() if config is None else config
+    dets = list(det.alternatives) if det.alternatives else [det]
+    dets += list(extra or [])
+    dets = [
+        d
+        for d in dets
+        if d.result is not None
+        and d.result.pose is not None
+        and d.observation is not None
+        and d.struts is not None
+    ]
+    return _weigh(
+        [(d.result.pose, d) for d in dets if d.result is not None and d.result.pose is not None],
+        [d.observation for d in dets if d.observation is not None],
+        [d.struts for d in dets if d.struts is not None],
+        geometry,
+        K,
+        fraction,
+        cfg,
+    )
+
+
+def quantity_hypotheses(
+    z: np.ndarray,
+    widths_px: np.ndarray | None,
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    fraction: float,
+    config: StrutDetectorConfig | None = None,
+    include: Rigid3 | None = None,
+) -> list[PartialHypothesis]:
+    """The consistent poses of measured quantities ``z`` (`partial_measured_quantities`:
+    ``p1, p2``, the strut directions and, ``fraction`` < 1, the stub lengths) with the three
+    strut widths ``widths_px`` (base, from P1, from P2; None: not checked), as
+    `detect_partial` verifies them and `partial_hypotheses` weighs them: each P3P solution
+    of ``p1, p2`` and the apex (where the two strut lines meet) whose camera is on the known
+    face, whose visible stub ends lie within ``max_end_chi`` sigmas of the measured ones and
+    whose widths agree. ``include``: a pose tried first besides the P3P solutions (the truth,
+    for noise-free analysis). No image: for analysis and tests on projections."""
+    cfg = StrutDetectorConfig() if config is None else config
+    if widths_px is None:
+        cfg = replace(cfg, strut_radius_m=None)
+    V = np.asarray(geometry.vertices_m, dtype=float)
+    z = np.asarray(z, dtype=float)
+    p1, p2 = z[0:2], z[2:4]
+    u1 = np.array([math.cos(z[4]), math.sin(z[4])])
+    u2 = np.array([math.cos(z[5]), math.sin(z[5])])
+    A = np.stack([u1, -u2], axis=1)
+    if abs(float(np.linalg.det(A))) < 1e-9:
+        return []
+    s1, _ = np.linalg.solve(A, p2 - p1)
+    apex = p1 + s1 * u1
+    e1, e2 = (p1 + z[6] * u1, p2 + z[7] * u2) if fraction < 1 else (apex, apex)
+    w = np.zeros(3) if widths_px is None else np.asarray(widths_px, dtype=float)
+
+    def strut(a: np.ndarray, b: np.ndarray, width: float) -> Strut:
+        length = float(np.linalg.norm(b - a))
+        return Strut(
+            point=a,
+            direction=(b - a) / max(length, 1e-12),
+            s0=0.0,
+            s1=length,
+            support_px=length,
+            residual_px=0.0,
+            width_px=float(width),
+        )
+
+    struts = (strut(p1, p2, w[0]), strut(p1, e1, w[1]), strut(p2, e2, w[2]))
+    obs = BracketObservation(p1_px=p1, p2_px=p2, p3_px=e2, p4_px=e1, sigma_px=cfg.min_sigma_px)
+    rays = np.c_[np.array([p1, p2, apex]), np.ones(3)] @ np.linalg.inv(K).T
+    rays = rays / rays[:, 2:3]
+    model = np.vstack([V, incentre(V)])
+    ctr = V.mean(axis=0)
+    poses: list[Rigid3] = []
+    found = [include] if include is not None else []
+    try:
+        roots = p3p_depths(rays, triangle_sides(V))
+    except (ValueError, np.linalg.LinAlgError, ZeroDivisionError):
+        roots = np.zeros((0, 3))
+    for d in roots:
+        cam = d[:, None] * rays
+        R, t = absolute_orientation(model, np.vstack([cam, incentre(cam)]))
+        found.append(Rigid3(R=R, t=t))
+    for cand in found:
+        range_m = float(np.linalg.norm(cand.apply(ctr[None])[0]))
+        if any(
+            _rotation_deg(cand, q) <= 1.0 and _pose_distance(cand, q, ctr)[1] <= 0.01 * range_m
+            for q in poses
+        ):
+            continue  # a repeated root
+        if cand is include or math.isfinite(
+            _verify(obs, struts, cand, geometry, K, fraction, cfg.strut_radius_m, cfg)[0]
+        ):
+            poses.append(cand)
+    n = len(poses)
+    return _weigh([(p, None) for p in poses], [obs] * n, [struts] * n, geometry, K, fraction, cfg)
+
+
+def exact_widths(
+    pose: Rigid3, geometry: BracketGeometry, K: np.ndarray, fraction: float, radius_m: float
+) -> np.ndarray:
+    """The three struts' apparent widths ``f 2 r / z`` [px] at the middle of their visible
+    parts (base, from P1, from P2)."""
+    V = np.asarray(geometry.vertices_m, dtype=float)
+    ends = np.array([V[0] + fraction * (V[2] - V[0]), V[1] + fraction * (V[2] - V[1])])
+    depth = pose.apply(np.vstack([V, ends]))[:, 2]
+    f = float(K[0, 0])
+    mid = [0.5 * (depth[0] + depth[1]), 0.5 * (depth[0] + depth[3]), 0.5 * (depth[1] + depth[4])]
+    return np.array([f * 2 * radius_m / z for z in mid])
+
+
+def noise_free_hypotheses(
+    pose: Rigid3,
+    geometry: BracketGeometry,
+    K: np.ndarray,
+    fraction: float,
+    config: StrutDetectorConfig | None = None,
+) -> list[PartialHypothesis]:
+    """Every pose the *exact* image of the bracket at ``pose`` admits (`quantity_hypotheses`
+    of the noise-free quantities and widths; the strut widths checked when
+    ``config.strut_radius_m`` is set); the truth first (its image_chi2 is 0). What no
+    detector can do better than on one frame: noise-free projections, no image."""
+    cfg = StrutDetectorConfig() if config is None else config
+    z = partial_image_quantities(pose, geometry.vertices_m, K, fraction)
+    r = cfg.strut_radius_m
+    widths = None if r is None else exact_widths(pose, geometry, K, fraction, r)
+    return quantity_hypotheses(z, widths, geometry, K, fraction, cfg, include=pose)
+
+
 def _stubs_at(end: np.ndarray, base: Strut, cands: list[Strut], tol: float, n: int) -> list[Strut]:
     """Candidates that start (one of their ends) within ``tol`` of ``end`` and cross the base
     at more than 10 deg, nearest first (at most ``n``)."""
@@ -967,6 +1406,7 @@ def detect_partial(
             if not math.isfinite(cost):
                 why[reason.split(" (")[0]] += 1
                 continue
+            image_chi2 = cost
             if predicted is not None:
                 ang, dist = _pose_distance(res.pose, predicted, geometry.vertices_m.mean(axis=0))
                 gate_m = cfg.gate_rel * float(np.linalg.norm(predicted.t)) + 0.02
@@ -974,7 +1414,14 @@ def detect_partial(
                     why[f"departs from the prediction by {ang:.0f} deg, {1e3 * dist:.0f} mm"] += 1
                     continue
                 cost += (ang / cfg.gate_deg) ** 2 + (dist / gate_m) ** 2
-            hyps.append((cost, StrutDetection(obs, (base, s1, s2), seg, tuple(cands), res, "", 0)))
+            hyps.append(
+                (
+                    cost,
+                    StrutDetection(
+                        obs, (base, s1, s2), seg, tuple(cands), res, "", 0, image_chi2=image_chi2
+                    ),
+                )
+            )
     if not hyps:
         detail = "; ".join(f"{k} ({n})" for k, n in why.most_common(2))
         head = (
@@ -1043,159 +1490,5 @@ def detect_partial(
         "",
         len(triples),
         tuple(distinct),
+        best.image_chi2,
     )
-
-
-@dataclass
-class _Track:
-    """Poses ``(frame, left_cam_from_target)`` of one labelling followed over frames, with the
-    detection of its last frame and its consecutive misses."""
-
-    poses: list[tuple[int, Rigid3]]
-    detection: StrutDetection
-    misses: int = 0
-
-    @property
-    def last(self) -> Rigid3:
-        return self.poses[-1][1]
-
-    def predict(self, k: int) -> Rigid3:
-        """Frame ``k``'s pose: constant relative motion from the last two poses when they are
-        one frame apart and ``k`` follows the last, else the last pose."""
-        (k1, p1) = self.poses[-1]
-        if len(self.poses) >= 2 and k == k1 + 1 and self.poses[-2][0] == k1 - 1:
-            p0 = self.poses[-2][1]
-            return (p1 @ p0.inverse()) @ p1
-        return p1
-
-
-class PartialTracker:
-    """Frame-to-frame `detect_partial` with the labelling settled over frames.
-
-    One frame of the paper's view often fits several poses (the P3P solutions of ``p1, p2``
-    and the apex, told apart only weakly by where the visible strut ends lie, and the
-    labellings of a near-symmetric bracket): such a frame is refused. Each distinct consistent
-    pose of a frame is associated with the candidate track whose predicted pose is nearest
-    (inside the gate), or starts a new candidate; a candidate without a consistent pose in
-    ``max_misses`` frames in a row is dropped. A candidate is adopted, and reported from that
-    frame on, when it has been followed over at least ``min_frames`` frames and every other
-    candidate has been dropped (while two live on, both explain every frame so far: nothing
-    is reported). A frame whose search
-    finds a single consistent pose is adopted at once, unless it departs (outside the gate)
-    from the adopted track lost within the last ``max_misses + 1`` frames: one frame's pose
-    does not overrule the labelling followed before the loss, so it only starts a candidate.
-    An adopted track is followed with its prediction (`detect_partial` with ``predicted``);
-    when lost, the search starts afresh.
-
-    Args:
-        K: 3x3 intrinsics of the undistorted images.
-        geometry: the bracket (target frame).
-        fraction: visible part of the side struts (0, 1].
-        config: detector settings.
-        min_frames: see above.
-        max_misses: see above.
-        max_candidates: at most this many candidate tracks (the best-scoring new ones).
-    """
-
-    def __init__(
-        self,
-        K: np.ndarray,
-        geometry: BracketGeometry,
-        fraction: float,
-        config: StrutDetectorConfig | None = None,
-        min_frames: int = 3,
-        max_misses: int = 2,
-        max_candidates: int = 8,
-    ) -> None:
-        self.K = np.asarray(K, dtype=float)
-        self.geometry = geometry
-        self.fraction = fraction
-        self.config = StrutDetectorConfig() if config is None else config
-        self.min_frames = min_frames
-        self.max_misses = max_misses
-        self.max_candidates = max_candidates
-        self.track: _Track | None = None
-        self.candidates: list[_Track] = []
-        self.lost: _Track | None = None  # the adopted track lost last, for `max_misses` frames
-
-    def step(self, k: int, image: np.ndarray) -> StrutDetection:
-        """Detect in frame ``k`` (increasing) of the undistorted grey ``image``."""
-        cfg = self.config
-        prep = partial_candidates(image, cfg)  # once per frame for every call below
-        if self.track is not None:
-            det = detect_partial(
-                image, self.K, self.geometry, self.fraction, cfg, self.track.predict(k), prep
-            )
-            if det.result is not None and det.result.pose is not None:
-                self.track.poses.append((k, det.result.pose))
-                return det
-            self.lost = self.track  # lost: search afresh
-            self.track = None
-            self.candidates = []
-        det = detect_partial(image, self.K, self.geometry, self.fraction, cfg, None, prep)
-        ctr = self.geometry.vertices_m.mean(axis=0)
-        if self.lost is not None and k - self.lost.poses[-1][0] > self.max_misses + 1:
-            self.lost = None  # too long ago to say anything
-        if det.observation is not None and det.result is not None and det.result.pose is not None:
-            lost = self.lost
-            if lost is not None and not _within_gate(det.result.pose, lost.predict(k), cfg, ctr):
-                # One frame's single pose against the labelling followed over the frames
-                # before the loss: not adopted at once. It starts a candidate like any
-                # alternative, and the lost track may come back.
-                self.candidates = [_Track([(k, det.result.pose)], det)]
-                return StrutDetection(
-                    None,
-                    None,
-                    det.segments,
-                    det.candidates,
-                    reason=(
-                        f"labelling ambiguous: the only consistent pose departs from the track "
-                        f"lost after frame {lost.poses[-1][0]}"
-                    ),
-                    hypotheses=det.hypotheses,
-                )
-            self.track = _Track([(k, det.result.pose)], det)
-            self.candidates = []
-            self.lost = None
-            return det
-        free = list(det.alternatives)
-        for t in self.candidates:
-            pred = t.predict(k)
-            near = [
-                (sum(_pose_distance(a.result.pose, pred, ctr)), a)
-                for a in free
-                if a.result is not None
-                and a.result.pose is not None
-                and _within_gate(a.result.pose, pred, cfg, ctr)
-            ]
-            if near:
-                a = min(near, key=lambda x: x[0])[1]
-                free = [x for x in free if x is not a]
-                assert a.result is not None and a.result.pose is not None
-                t.poses.append((k, a.result.pose))
-                t.detection, t.misses = a, 0
-            else:
-                t.misses += 1
-        self.candidates = [t for t in self.candidates if t.misses < self.max_misses]
-        for a in free:
-            if len(self.candidates) >= self.max_candidates:
-                break
-            assert a.result is not None and a.result.pose is not None
-            self.candidates.append(_Track([(k, a.result.pose)], a))
-        hit = [t for t in self.candidates if t.misses == 0 and t.poses[-1][0] == k]
-        if hit:
-            oldest = max(hit, key=lambda t: len(t.poses))
-            age = len(oldest.poses)
-            if age >= self.min_frames and len(self.candidates) == 1:
-                self.track, self.candidates, self.lost = oldest, [], None
-                return oldest.detection
-        if not det.alternatives:
-            return det
-        return StrutDetection(
-            None,
-            None,
-            det.segments,
-            det.candidates,
-            reason=f"{det.reason}; {len(self.candidates)} candidate tracks not yet settled",
-            hypotheses=det.hypotheses,
-        )

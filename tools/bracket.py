@@ -6,8 +6,10 @@ with the backend's constant-twist smoother (loosely coupled). The bracket geomet
 target.yaml: ``bracket`` if present, else ``solar_brackets[--side]`` (a known-geometry method
 reads only the geometry it needs). Ground truth, if present, is used only for the report.
 A ``bracket`` entry (the paper's view: ``visible_fraction`` and the struts' diameter
-``bracket_strut_width_m``) is measured with `satpose.frontend.bracket_lines.PartialTracker`
-(base strut and stubs, labelling settled over frames, ambiguous frames refused);
+``bracket_strut_width_m``) is measured with `satpose.frontend.bracket_lines.detect_partial`
+(base strut and stubs; every consistent pose of a frame) and the labelling is decided over
+frames by `satpose.backend.labelling.SequenceLabeller` (``--decision offline|online``;
+frames the motion cannot decide are refused);
 ``solar_brackets`` (whole triangle with its yoke) with ``detect_struts``.
 
 DIR (written to a temporary folder, then renamed):
@@ -15,6 +17,8 @@ DIR (written to a temporary folder, then renamed):
 - ``trajectory.tum``: ``left_cam_from_target`` of the smoother (or the per-frame poses with
   ``--estimator none``), TUM ``t tx ty tz qx qy qz qw``;
 - ``per_frame.tum``: the per-frame bracket poses;
+- ``per_frame_online.tum`` (paper's view): the per-frame poses an ``--decision online`` run
+  reports (each frame decided from the frames up to it), whatever ``--decision`` says;
 - ``points.csv``: per frame the four image points, their sigma, the pose method or the reason
   a frame has no pose;
 - ``overlay/NNNNNN.png``: every ``--overlay-every``-th frame with the LSD segments, strut
@@ -54,10 +58,14 @@ from satpose.frontend.bracket import (
     to_frame_measurements,
 )
 from satpose.frontend.bracket_lines import (
-    PartialTracker,
+    PartialHypothesis,
     StrutDetection,
     StrutDetectorConfig,
+    detect_partial,
     detect_struts,
+    partial_candidates,
+    partial_hypotheses,
+    refine_partial_pose,
 )
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
 from satpose.frontend.preprocess import Undistorter
@@ -175,6 +183,9 @@ def run_bracket(
     angular_noise: float = 1e-5,
     linear_noise: float = 2e-4,
     require_pose: bool = True,
+    decision: str = "offline",
+    labelling: Any = None,
+    predicted_searches: int = 1,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Run the bracket method on a mono (or stereo: left image only) sequence; see the module
@@ -187,8 +198,18 @@ def run_bracket(
 
     A sequence without any pose is an error unless ``require_pose`` is False (benchmarks:
     then the trajectories are empty and points.csv holds every frame's reason).
+
     ``progress(done, total)`` is called after each frame (it may stop the run by raising:
-    the output folder is then not written)."""
+    the output folder is then not written).
+
+    The paper's view (a ``bracket`` entry): every frame's consistent poses go to
+    `satpose.backend.labelling.SequenceLabeller` (settings ``labelling``, a
+    `LabellingConfig`; None: its defaults); ``decision`` ``offline`` reports each frame as
+    decided by the whole sequence (back to a track's start), ``online`` from the frames up to
+    it (from the decision on). Each frame is also searched near the predictions of the
+    ``predicted_searches`` best tracks."""
+    if decision not in ("offline", "online"):
+        raise BracketRunError(f"decision must be offline or online, got {decision!r}")
     seq = load_sequence(sequence_path)
     check_out(out, overwrite, error=BracketRunError)
     geo, fraction = bracket_from_target(seq, side)
@@ -199,12 +220,16 @@ def run_bracket(
     K = cam.K
     det_cfg = StrutDetectorConfig() if detector is None else detector
     partial = partial_view(seq)
-    tracker: PartialTracker | None = None
+    labeller = None
     if partial is not None:
+        from satpose.backend.labelling import SequenceLabeller
+
         det_cfg = replace(det_cfg, strut_radius_m=partial[1])
+        labeller = SequenceLabeller(geo.vertices_m.mean(axis=0), labelling)
+    # paper's view: frame position -> (detection, hypotheses, labeller step, online decision)
+    pending: dict[int, tuple[StrutDetection, list[PartialHypothesis], int, Any]] = {}
+    grey_of: dict[int, np.ndarray] = {}  # overlay frames of the paper's view, drawn at the end
     solver = BracketConfig()
-    if partial is not None:
-        tracker = PartialTracker(K, geo, partial[0], det_cfg)
     bad = BadFrames(seq.root)
     with staged_output(out, overwrite, error=BracketRunError) as stage:
         (stage / "overlay").mkdir()
@@ -234,16 +259,34 @@ def run_bracket(
                         det = StrutDetection(
                             None, None, np.zeros((0, 4)), reason=f"image {prep.problem}"
                         )
-                    elif tracker is not None:
-                        det = tracker.step(k, prep.gray8)
-                        if det.observation is not None and det.result is not None:
-                            result = solve_bracket(
-                                det.observation,
-                                geo,
-                                K,
-                                replace(solver, prior_least_squares=True),
-                                prior_depths=det.result.depths_m,
+                    elif labeller is not None and partial is not None:
+                        cands = partial_candidates(prep.gray8, det_cfg)
+                        det = detect_partial(
+                            prep.gray8, K, geo, partial[0], det_cfg, prepared=cands
+                        )
+                        # also near the best tracks' predictions (a least-squares start
+                        # there finds a pose whose P3P pair noise turned complex)
+                        near = [
+                            detect_partial(
+                                prep.gray8, K, geo, partial[0], det_cfg, predicted=p, prepared=cands
                             )
+                            for p in labeller.predictions(fr.t_s, predicted_searches)
+                        ]
+                        hyps = partial_hypotheses(
+                            det,
+                            geo,
+                            K,
+                            partial[0],
+                            det_cfg,
+                            extra=[d for d in near if d.result is not None],
+                        )
+                        labeller.step(fr.t_s, hypothesis_candidates(hyps))
+                        step = len(labeller.t_s) - 1
+                        pending[k] = (det, hyps, step, labeller.online_decision())
+                        if overlay_every > 0 and k % overlay_every == 0:
+                            grey_of[k] = prep.gray8
+                        # reported (or not) once decided, below
+                        det = replace(det, reason=det.reason or "not decided")
                     else:
                         predicted = prev.pose if prev is not None else None
                         det = detect_struts(prep.gray8, K, geo, det_cfg, predicted=predicted)
@@ -283,13 +326,15 @@ def run_bracket(
                             reason,
                         ]
                     )
-                    if overlay_every > 0 and k % overlay_every == 0:
+                    if overlay_every > 0 and k % overlay_every == 0 and k not in grey_of:
                         img = draw_overlay(prep.gray8, det, result, geo, K, truth)
                         cv2.imwrite(str(stage / "overlay" / f"{fr.index:06d}.png"), img)
                 except Exception as exc:
                     log.debug("frame %d: bracket raised", fr.index, exc_info=True)
                     why = exception_failure("bracket", exc)
                     prev = prev_before
+                    pending.pop(k, None)
+                    grey_of.pop(k, None)
             if why is not None:
                 # a frame without a pose: drop what a failed step had added
                 del frames[n0[0] :], per_frame[n0[1] :], rows[n0[2] :]
@@ -298,6 +343,66 @@ def run_bracket(
             bad.note(fr.index, frames[-1].failures, (fr.left_path,))
             if progress is not None:
                 progress(k + 1, len(seq.frames))
+        online_poses: list[tuple[float, Rigid3]] = []
+        if labeller is not None:
+            decisions = labeller.decide()
+
+            def reported(
+                det: StrutDetection, hyps: list[PartialHypothesis], d: Any
+            ) -> tuple[StrutDetection, BracketResult | None, str]:
+                """The decided frame's detection and pose (with its covariance), or the
+                refusal."""
+                if d.candidate is None:
+                    why = det.reason if not hyps else d.reason
+                    return replace(det, observation=None, struts=None, result=None), None, why
+                chosen = hyps[d.candidate]
+                assert chosen.detection is not None
+                # the frame's own quantities, from the track's fitted pose: the per-frame
+                # maximum of the likelihood in the chosen labelling's basin
+                start = d.pose if d.pose is not None else chosen.refined
+                pose, cov, _ = refine_partial_pose(start, chosen.model)
+                res = BracketResult(pose=pose, covariance=cov, selected_by="sequence")
+                return chosen.detection, res, ""
+
+            for k, (det, hyps, step, online) in pending.items():
+                fr = seq.frames[k]
+                det_on, result_on, _ = reported(det, hyps, online)
+                if result_on is not None and result_on.pose is not None:
+                    online_poses.append((fr.t_s, result_on.pose))
+                if decision == "online":
+                    det, result, reason = det_on, result_on, _
+                else:
+                    det, result, reason = reported(det, hyps, decisions[step])
+                if result is not None and result.pose is not None:
+                    frames[k] = to_frame_measurements(result, fr.index, fr.t_s)
+                else:
+                    frames[k] = FrameMeasurements(
+                        frame=fr.index, t_s=fr.t_s, failures=(f"bracket: {reason or 'no pose'}",)
+                    )
+                obs = det.observation
+                pts = obs.points().ravel().tolist() if obs is not None else [math.nan] * 8
+                rows[k] = [
+                    fr.index,
+                    fr.t_s,
+                    *pts,
+                    obs.sigma_px if obs is not None else math.nan,
+                    reason,
+                ]
+                if k in grey_of:
+                    truth = None
+                    if seq.truth is not None:
+                        try:
+                            truth = seq.truth.pose(seq.truth.row_of_frame(fr.index))
+                        except KeyError:
+                            truth = None
+                    img = draw_overlay(grey_of[k], det, result, geo, K, truth)
+                    cv2.imwrite(str(stage / "overlay" / f"{fr.index:06d}.png"), img)
+            per_frame = [(m.t_s, m.pose.left_cam_from_target) for m in frames if m.pose is not None]
+            write_tum(
+                [t for t, _ in online_poses],
+                [p for _, p in online_poses],
+                stage / "per_frame_online.tum",
+            )
         with open(stage / "points.csv", "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(POINT_COLUMNS)
@@ -388,6 +493,40 @@ def run_bracket(
     return summary
 
 
+def hypothesis_candidate(h: PartialHypothesis, ref: object = None, group: int = -1) -> Any:
+    """A frame's consistent pose as `satpose.backend.labelling` weighs it: the frame's
+    measured quantities as a function of the pose (the fit's measurement), the refined pose
+    with its covariance (start, gates), the strut widths' misfit (2 dof with a known
+    radius)."""
+    from satpose.backend.labelling import Candidate
+    from satpose.frontend.measurements import PoseMeasurement, PoseMethod
+
+    return Candidate(
+        pose=PoseMeasurement(
+            left_cam_from_target=h.refined, covariance=h.covariance, method=PoseMethod.BRACKET
+        ),
+        image=h.model,
+        image_chi2=h.width_chi2,
+        image_dim=h.image_dim - (h.model.dim - 6),
+        group=group,
+        ref=ref,
+    )
+
+
+def hypothesis_candidates(hyps: list[PartialHypothesis]) -> list[Any]:
+    """`hypothesis_candidate` of each, those with the same measured quantities in one group
+    (`satpose.backend.labelling.Candidate.group`); ``ref`` is the hypothesis."""
+    groups: list[np.ndarray] = []
+    out = []
+    for h in hyps:
+        g = next((i for i, z in enumerate(groups) if np.array_equal(z, h.model.z)), None)
+        if g is None:
+            groups.append(h.model.z)
+            g = len(groups) - 1
+        out.append(hypothesis_candidate(h, ref=h, group=g))
+    return out
+
+
 def refusal_summary(frames: list[FrameMeasurements], first: int = 3) -> str:
     """``"N of M frames without a pose: <reason> (count), ..."`` for the frames whose bracket
     pose was refused, the ``first`` most frequent reasons named (the text before the
@@ -415,6 +554,7 @@ def _handler(args: argparse.Namespace) -> None:
         overwrite=args.overwrite,
         angular_noise=args.angular_noise,
         linear_noise=args.linear_noise,
+        decision=args.decision,
     )
     refused = summary.pop("refused", "")
     print(
@@ -452,6 +592,13 @@ def register(subparsers: Any) -> None:
         type=float,
         default=2e-4,
         help="smoother: linear acceleration noise [m/s^2/sqrt(Hz)] (default 2e-4)",
+    )
+    p.add_argument(
+        "--decision",
+        choices=("offline", "online"),
+        default="offline",
+        help="paper's view: report a frame's labelling as decided by the whole sequence "
+        "(offline, the default) or by the frames up to it (online)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.set_defaults(handler=_handler)

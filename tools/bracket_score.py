@@ -18,18 +18,13 @@ from typing import Any
 
 import numpy as np
 
+from satpose.backend.labelling import LabellingConfig, SequenceLabeller
 from satpose.datasets.bracket_family import measured_points_b
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec
 from satpose.datasets.sequence import load_sequence
-from satpose.frontend.bracket import (
-    BracketGeometry,
-    absolute_orientation,
-    incentre,
-    p3p_depths,
-    project,
-)
-from satpose.frontend.bracket_lines import StrutDetectorConfig
-from satpose.tools.bracket import run_bracket
+from satpose.frontend.bracket import BracketGeometry, project
+from satpose.frontend.bracket_lines import StrutDetectorConfig, noise_free_hypotheses
+from satpose.tools.bracket import hypothesis_candidates, partial_view, run_bracket
 from satpose.tools.files import read_tum
 
 MISLABEL_DEG = 20.0
@@ -41,45 +36,87 @@ def _angle_diff(a: np.ndarray, b: np.ndarray) -> float:
     return math.atan2(float(a[0] * b[1] - a[1] * b[0]) * -1.0, float(a @ b))
 
 
+def _rivals(T: Rigid3, poses: list[Rigid3], V: np.ndarray) -> list[Rigid3]:
+    """The poses more than the detector's rival distance (8 deg or 5 % of the range at the
+    bracket's centroid) from ``T``."""
+    cfg = StrutDetectorConfig()
+    ctr = V.mean(axis=0)
+    range_m = float(np.linalg.norm(T.apply(ctr[None])[0]))
+    out = []
+    for p in poses:
+        dR = math.degrees(float(np.linalg.norm(matrix_to_rotvec(p.R @ T.R.T))))
+        dc = float(np.linalg.norm(p.apply(ctr[None])[0] - T.apply(ctr[None])[0]))
+        if dR > cfg.rival_deg or dc > cfg.rival_rel * range_m:
+            out.append(p)
+    return out
+
+
 def ambiguous_noise_free(T: Rigid3, V: np.ndarray, K: np.ndarray, fraction: float) -> bool:
     """Whether the exact image of the bracket (``p1, p2``, the apex from the exact strut
     lines) already fits a second pose: a P3P solution other than the truth (more than the
     detector's rival distance away: 8 deg or 5 % of the range) with the camera on the front
     face and its visible stub ends within the detector's 3 sigma (``3 px + 5 %`` of the stub)
-    of the exact ones. Such a frame is ambiguous whatever the detector does."""
-    cfg = StrutDetectorConfig()
-    geo = BracketGeometry(vertices_m=V, vertex_sigma_m=0.0)
-    px = project(T, V, K)
-    rays = np.c_[px, np.ones(3)] @ np.linalg.inv(K).T
-    rays = rays / rays[:, 2:3]
-    ends = np.array([V[0] + fraction * (V[2] - V[0]), V[1] + fraction * (V[2] - V[1])])
-    true_ends = project(T, ends, K)
-    ctr = V.mean(axis=0)
-    range_m = float(np.linalg.norm(T.apply(ctr[None])[0]))
-    mod4 = np.vstack([V, incentre(V)])
-    for d in p3p_depths(rays, geo.sides_m):
-        cam = d[:, None] * rays
-        R, t = absolute_orientation(mod4, np.vstack([cam, incentre(cam)]))
-        pose = Rigid3(R=R, t=t)
-        dR = math.degrees(float(np.linalg.norm(matrix_to_rotvec(pose.R @ T.R.T))))
-        dc = float(np.linalg.norm(pose.apply(ctr[None])[0] - T.apply(ctr[None])[0]))
-        if dR <= cfg.rival_deg and dc <= cfg.rival_rel * range_m:
-            continue  # the truth itself
-        normal = pose.rotate(np.cross(V[1] - V[0], V[2] - V[0]))
-        if float(-pose.apply(V.mean(axis=0)[None])[0] @ normal) <= 0:
-            continue
-        if fraction < 1:
-            e = project(pose, ends, K)
-            ok = True
-            for i, start in ((0, px[0]), (1, px[1])):
-                length = float(np.linalg.norm(true_ends[i] - start))
-                sigma = cfg.end_sigma_px + cfg.end_sigma_rel * length
-                if float(np.linalg.norm(e[i] - true_ends[i])) > cfg.max_end_chi * sigma:
-                    ok = False
-            if not ok:
-                continue
-        return True
-    return False
+    of the exact ones (`noise_free_hypotheses` without the strut widths). Such a frame is
+    ambiguous whatever a single-frame detector does."""
+    hyps = noise_free_hypotheses(
+        T, BracketGeometry(vertices_m=V), K, fraction, StrutDetectorConfig(strut_radius_m=None)
+    )
+    return bool(_rivals(T, [h.pose for h in hyps], V))
+
+
+def decidable_noise_free(
+    seq_path: Path, labelling: LabellingConfig | None = None
+) -> tuple[list[bool], list[bool], int, list[float]]:
+    """What the decision over frames (`SequenceLabeller`) reports on the member's *exact*
+    images (every consistent pose of each frame from noise-free projections, weighed as the
+    detector's, strut widths included): per frame, reported offline, reported online, how
+    many reported poses are another answer than the truth (rival distance), and each frame's
+    offline log-likelihood ratio. The most a detector with this decision rule can report:
+    the exact data's ratio is the evidence noisy data give on average (the noise adds the
+    same chi-square to every track), so where it is below the threshold, noisy data do not
+    decide either."""
+    seq = load_sequence(seq_path)
+    assert seq.target is not None and seq.target.bracket is not None and seq.truth is not None
+    b = seq.target.bracket
+    V = np.array([b.P1, b.P2, b.P5])
+    K = seq.calibration.left.K
+    width = seq.target.extras.get("bracket_strut_width_m")
+    cfg = StrutDetectorConfig(strut_radius_m=None if width is None else float(width) / 2)
+    geo = BracketGeometry(vertices_m=V)
+    lab = SequenceLabeller(V.mean(axis=0), labelling)
+    truths, online = [], []
+    poses_on: list[Rigid3 | None] = []
+    for fr in seq.frames:
+        T = seq.truth.pose(seq.truth.row_of_frame(fr.index))
+        truths.append(T)
+        hyps = noise_free_hypotheses(T, geo, K, b.visible_fraction, cfg)
+        lab.step(fr.t_s, hypothesis_candidates(hyps))
+        d = lab.online_decision()
+        online.append(d.candidate)
+        poses_on.append(d.pose)
+    decisions = lab.decide()
+    offline = [d.candidate for d in decisions]
+    wrong = 0
+    for k, T in enumerate(truths):
+        wrong += sum(bool(_rivals(T, [p], V)) for p in (poses_on[k], decisions[k].pose) if p)
+    return (
+        [j is not None for j in offline],
+        [j is not None for j in online],
+        wrong,
+        [d.log_lr for d in decisions],
+    )
+
+
+def _mislabelled_pose(est: Rigid3, T: Rigid3, V: np.ndarray, K: np.ndarray) -> bool:
+    """A pose whose projected ``P1`` lies nearer the true image of ``P2`` than of ``P1`` (or
+    the reverse), or whose attitude error exceeds 20 deg."""
+    e = project(est, V[:2], K)
+    t = project(T, V[:2], K)
+    swapped = np.linalg.norm(e[0] - t[1]) < np.linalg.norm(e[0] - t[0]) or np.linalg.norm(
+        e[1] - t[0]
+    ) < np.linalg.norm(e[1] - t[1])
+    rot = math.degrees(float(np.linalg.norm(matrix_to_rotvec(est.R @ T.R.T))))
+    return bool(swapped or rot > MISLABEL_DEG)
 
 
 def score_sequence(
@@ -97,7 +134,10 @@ def score_sequence(
         ``rows`` (per frame: ``seed`` (the folder's name), ``frame``, ``range_m``, ``T``
         (truth), ``ambiguous_exact``, then ``reason`` or ``e_rot_deg``, ``e_pos_m``,
         ``mislabelled``, ``resid``, ``dtheta``, ``dend``), ``fraction``, ``V`` (P1, P2, P5),
-        ``K``, ``cpu_s`` and ``summary`` (`run_bracket`'s).
+        ``K``, ``cpu_s``, ``summary`` (`run_bracket`'s) and ``exact_wrong``; the rows of
+        the paper's view also hold ``decidable_exact``, ``decidable_exact_online``,
+        ``exact_lr`` (`decidable_noise_free`), ``online`` and ``online_mislabelled`` (the
+        online decision's ``per_frame_online.tum``; a view without one: none online).
     """
     seq = load_sequence(seq_path)
     if seq.target is None or seq.target.bracket is None or seq.truth is None:
@@ -120,21 +160,34 @@ def score_sequence(
     cpu = time.process_time() - start
     t_est, est_poses = read_tum(run_dir / "per_frame.tum")
     poses = {round(float(t), 6): p for t, p in zip(t_est, est_poses, strict=True)}
+    online: dict[float, Rigid3] = {}
+    n = len(seq.frames)
+    exact_off, exact_on, exact_wrong, exact_lr = [False] * n, [False] * n, 0, [math.nan] * n
+    if partial_view(seq) is not None:  # the paper's view: a decision over frames
+        t_on, on_poses = read_tum(run_dir / "per_frame_online.tum")
+        online = {round(float(t), 6): p for t, p in zip(t_on, on_poses, strict=True)}
+        exact_off, exact_on, exact_wrong, exact_lr = decidable_noise_free(seq_path)
     with open(run_dir / "points.csv") as fh:
         points = {int(r["frame"]): r for r in csv.DictReader(fh)}
     rows = []
     model = measured_points_b(V, frac)  # P1, P2 and the visible ends (target frame)
-    for fr in seq.frames:
+    for k, fr in enumerate(seq.frames):
         T = seq.truth.pose(seq.truth.row_of_frame(fr.index))
         rng_m = float(np.linalg.norm(T.apply(model).mean(axis=0)))
         r = points[fr.index]
         est = poses.get(round(fr.t_s, 6))
+        est_on = online.get(round(fr.t_s, 6))
         row: dict[str, Any] = {
             "seed": Path(seq_path).name,
             "frame": fr.index,
             "range_m": rng_m,
             "T": T,
             "ambiguous_exact": ambiguous_noise_free(T, V, K, frac),
+            "decidable_exact": exact_off[k],
+            "decidable_exact_online": exact_on[k],
+            "exact_lr": exact_lr[k],
+            "online": est_on is not None,
+            "online_mislabelled": est_on is not None and _mislabelled_pose(est_on, T, V, K),
         }
         if est is None:
             row["reason"] = r["reason"].split(":")[0].split(" (")[0] or "no pose"
@@ -166,7 +219,15 @@ def score_sequence(
                 else [],
             )
         rows.append(row)
-    return {"rows": rows, "fraction": frac, "V": V, "K": K, "cpu_s": cpu, "summary": summary}
+    return {
+        "rows": rows,
+        "fraction": frac,
+        "V": V,
+        "K": K,
+        "cpu_s": cpu,
+        "summary": summary,
+        "exact_wrong": exact_wrong,
+    }
 
 
 def _plain(v: Any) -> Any:

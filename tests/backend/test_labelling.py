@@ -1,0 +1,274 @@
+"""Deciding the bracket's labelling over frames (`satpose.backend.labelling`) on noise-free
+projections (no image): every frame's consistent poses from the exact image
+(`noise_free_hypotheses`), the sequence decided by the motion."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from satpose.backend.errors import BackendError
+from satpose.backend.labelling import Candidate, LabellingConfig, SequenceLabeller, fit_track
+from satpose.backend.motion import first_twist_covariance
+from satpose.backend.pose3 import exp
+from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
+from satpose.frontend.bracket import BracketGeometry
+from satpose.frontend.bracket_lines import (
+    PartialHypothesis,
+    PartialImageModel,
+    StrutDetectorConfig,
+    noise_free_hypotheses,
+    refine_partial_pose,
+)
+from satpose.frontend.measurements import PoseMeasurement, PoseMethod
+from satpose.tools.bracket import hypothesis_candidate
+
+K = np.array([[700.0, 0.0, 399.5], [0.0, 700.0, 299.5], [0.0, 0.0, 1.0]])
+# A non-isosceles bracket (sides 0.60 / 0.58 / 0.71 m) and an isosceles one.
+V_SKEW = np.array([[0.0, 0.0, 0.0], [0.6, 0.0, 0.0], [0.15, 0.56, 0.0]])
+V_ISO = np.array([[0.0, 0.0, 0.0], [0.6, 0.0, 0.0], [0.3, 0.5, 0.0]])
+CFG = StrutDetectorConfig(strut_radius_m=0.012)
+
+
+def view(
+    V: np.ndarray, tilt_deg: float, roll_deg: float, range_m: float, fraction: float
+) -> Rigid3:
+    """``left_cam_from_target``: the visible part's centre on the optical axis at ``range_m``,
+    the bracket's normal (+z, toward the camera) tilted ``tilt_deg`` about the base, the
+    camera rolled ``roll_deg``."""
+    c = np.array(
+        [V[0], V[1], V[0] + fraction * (V[2] - V[0]), V[1] + fraction * (V[2] - V[1])]
+    ).mean(axis=0)
+    R = (
+        rotvec_to_matrix(np.array([0.0, 0.0, math.radians(roll_deg)]))
+        @ rotvec_to_matrix(np.array([math.radians(tilt_deg), 0.0, 0.0]))
+        @ np.diag([1.0, -1.0, -1.0])
+    )
+    return Rigid3(R=R, t=np.array([0.0, 0.0, range_m]) - R @ c)
+
+
+def approach(
+    V: np.ndarray, fraction: float, tilt: tuple[float, float], roll: tuple[float, float]
+) -> list[Rigid3]:
+    """Eight frames 1 s apart closing from 2.0 m to 0.8 m (geometric), tilt and roll changing
+    linearly: the kind of motion the bracket family draws."""
+    out = []
+    for k in range(8):
+        s = k / 7
+        out.append(
+            view(
+                V,
+                tilt[0] + s * (tilt[1] - tilt[0]),
+                roll[0] + s * (roll[1] - roll[0]),
+                2.0 * 0.4**s,
+                fraction,
+            )
+        )
+    return out
+
+
+def _candidate(h: PartialHypothesis) -> Candidate:
+    c = hypothesis_candidate(h, ref=h)
+    assert isinstance(c, Candidate)
+    return c
+
+
+def _angle_deg(a: Rigid3, b: Rigid3) -> float:
+    c = (float(np.trace(a.R.T @ b.R)) - 1.0) / 2.0
+    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+
+def _run(
+    V: np.ndarray, fraction: float, truth: list[Rigid3]
+) -> tuple[SequenceLabeller, list[list[PartialHypothesis]], list[int | None]]:
+    geo = BracketGeometry(vertices_m=V)
+    lab = SequenceLabeller(V.mean(axis=0))
+    hyps, online = [], []
+    for k, T in enumerate(truth):
+        h = noise_free_hypotheses(T, geo, K, fraction, CFG)
+        hyps.append(h)
+        lab.step(float(k), [_candidate(x) for x in h])
+        online.append(lab.online_decision().candidate)
+    return lab, hyps, online
+
+
+def test_ambiguous_frames_decided_by_the_motion() -> None:
+    """A non-isosceles bracket, 70 % of the side struts visible, 35-40 deg oblique, rolling
+    40 deg while closing in: every exact image also fits a second pose more than 8 deg away
+    (a single frame is refused as ambiguous), but only the truth moves like a rigid body
+    with the approach. Offline every frame is reported, each the true pose (noise-free:
+    within 0.01 deg); online the frames from the decision on, each the true pose."""
+    truth = approach(V_SKEW, 0.7, (35.0, 40.0), (30.0, 70.0))
+    lab, hyps, online = _run(V_SKEW, 0.7, truth)
+    for k, h in enumerate(hyps):
+        assert max(_angle_deg(x.pose, truth[k]) for x in h) > 8.0, k  # a real rival
+    decisions = lab.decide()
+    for k, d in enumerate(decisions):
+        assert d.candidate is not None and d.pose is not None, (k, d.reason)
+        # what `satpose bracket` reports: the frame's refined pose from the track's fit
+        pose, _, _ = refine_partial_pose(d.pose, hyps[k][d.candidate].model)
+        assert _angle_deg(pose, truth[k]) < 0.01, k
+        assert d.log_lr >= lab.config.log_lr_threshold
+    reported = [k for k, j in enumerate(online) if j is not None]
+    assert reported, "online: never decided"
+    assert reported == list(range(reported[0], len(truth))), reported  # from the decision on
+    for k in reported:
+        j = online[k]
+        assert j is not None and _angle_deg(hyps[k][j].pose, truth[k]) < 0.01, k  # its labelling
+
+
+def test_motion_consistent_wrong_labelling_reports_nothing() -> None:
+    """An isosceles bracket seen face-on with the whole triangle in view, closing in and
+    rolling: every exact image also fits the mirrored labellings (P1 and P2 swapped, 27-46
+    deg off) and another P3P solution (18-31 deg off), and they move as smoothly as the truth
+    (their tracks' motion fit is within the noise). The data cannot tell: no frame is
+    reported, offline or online."""
+    truth = approach(V_ISO, 1.0, (0.0, 0.0), (10.0, 30.0))
+    lab, hyps, online = _run(V_ISO, 1.0, truth)
+    for k, h in enumerate(hyps):
+        assert len(h) >= 2 and max(_angle_deg(x.pose, truth[k]) for x in h) > 20.0, k
+    assert all(j is None for j in online), online
+    decisions = lab.decide()
+    assert all(d.candidate is None for d in decisions), [d.log_lr for d in decisions]
+    assert all(d.reason.startswith("labelling ambiguous over frames") for d in decisions)
+    # a wrong labelling's track explains the motion: fit within its degrees of freedom (its
+    # fitted poses: a track may take a frame's quantities from its own prediction)
+    wrong = [
+        tr
+        for tr in lab.tracks
+        if len(tr.picks) == len(truth)
+        and all(
+            _angle_deg(p, truth[k]) > 20.0
+            for k, p in zip(sorted(tr.picks), tr.fit.poses, strict=True)
+        )
+    ]
+    assert wrong
+    assert min(tr.fit.error for tr in wrong) < 0.5 * wrong[0].fit.dof
+
+
+def test_lone_wrong_pose_after_a_lost_track_is_not_reported() -> None:
+    """Five frames of a track, then two frames without any candidate, then one frame whose
+    only candidate is 60 deg of roll away from the track's continuation: it starts a track
+    of its own, which cannot outweigh the one followed before (nor the null hypothesis) on
+    one frame: not reported (the validation frame that once was mislabelled)."""
+    truth = approach(V_SKEW, 0.3, (25.0, 30.0), (30.0, 50.0))
+    geo = BracketGeometry(vertices_m=V_SKEW)
+    lab = SequenceLabeller(V_SKEW.mean(axis=0))
+    for k in range(5):
+        lab.step(
+            float(k), [_candidate(x) for x in noise_free_hypotheses(truth[k], geo, K, 0.3, CFG)[:1]]
+        )
+    lab.step(5.0, [])
+    lab.step(6.0, [])
+    turned = Rigid3(
+        R=rotvec_to_matrix(np.array([0.0, 0.0, math.radians(60.0)])) @ truth[7].R, t=truth[7].t
+    )
+    lab.step(7.0, [_candidate(noise_free_hypotheses(turned, geo, K, 0.3, CFG)[0])])
+    assert lab.online_decision().candidate is None
+    assert lab.decide()[7].candidate is None
+    assert all(d.candidate == 0 for d in lab.decide()[:5])
+
+
+def test_fit_track_is_exact_on_a_constant_twist() -> None:
+    """Poses on a constant twist, measured exactly: the smoother's error is only the weak
+    zero-mean prior on the first twist (noise-free: within 1 % of it), and rises by more than 1 when
+    one pose is moved by 10 sigma."""
+    T0 = view(V_SKEW, 20.0, 0.0, 1.5, 0.5)
+    xi = np.array([0.02, -0.01, 0.05, 0.01, 0.02, -0.1])
+
+    cov = np.diag([1e-4] * 3 + [1e-4] * 3)
+    poses = [exp(T0, xi * k) for k in range(6)]
+    meas = [
+        PoseMeasurement(left_cam_from_target=p, covariance=cov, method=PoseMethod.BRACKET)
+        for p in poses
+    ]
+    motion = LabellingConfig().motion
+    fit = fit_track(np.arange(6.0), [Candidate(pose=m) for m in meas], motion)
+    prior = 0.5 * float(xi @ np.linalg.solve(first_twist_covariance(motion), xi))
+    # the exact trajectory costs the prior term alone; the optimum trades a little of it
+    assert 0.99 * prior < fit.error <= prior + 1e-9 and fit.dof == 30
+    moved = exp(poses[3], np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    meas[3] = PoseMeasurement(left_cam_from_target=moved, covariance=cov, method=PoseMethod.BRACKET)
+    assert fit_track(np.arange(6.0), [Candidate(pose=m) for m in meas], motion).error > prior + 1
+
+
+def test_bad_input() -> None:
+    """Times must increase; settings are checked; a failed step leaves the state as it was."""
+    lab = SequenceLabeller(np.zeros(3))
+    lab.step(0.0, [])
+    with pytest.raises(BackendError, match="increase"):
+        lab.step(0.0, [])
+    assert len(lab.t_s) == 1
+    with pytest.raises(BackendError):
+        LabellingConfig(log_lr_threshold=0.0)
+    with pytest.raises(BackendError):
+        Candidate(
+            pose=PoseMeasurement(
+                left_cam_from_target=Rigid3.identity(), covariance=np.eye(6), method="bracket"
+            ),
+            image_chi2=math.nan,
+        )
+
+
+def _rendered_seed2() -> tuple[list[float], list[list[Candidate]], list[Rigid3], np.ndarray]:
+    """Tuning seed 2 of the bracket family as `satpose bracket` measured it (the rendered
+    images' candidates, tests/data/bracket_labelling/seed2_candidates.json): times, each
+    frame's candidates, the truth and the bracket's centroid."""
+    path = Path(__file__).parents[1] / "data" / "bracket_labelling" / "seed2_candidates.json"
+    data = json.loads(path.read_text())
+    V, K_, frac = np.array(data["vertices"]), np.array(data["K"]), float(data["fraction"])
+    times, cands, truth = [], [], []
+    for fr in data["frames"]:
+        times.append(float(fr["t_s"]))
+        truth.append(Rigid3(R=np.array(fr["truth"]["R"]), t=np.array(fr["truth"]["t"])))
+        cands.append(
+            [
+                Candidate(
+                    pose=PoseMeasurement(
+                        left_cam_from_target=Rigid3(R=np.array(c["R"]), t=np.array(c["t"])),
+                        covariance=np.array(c["covariance"]),
+                        method=PoseMethod.BRACKET,
+                    ),
+                    image=PartialImageModel(np.array(c["z"]), np.array(c["sigma"]), V, K_, frac),
+                    image_chi2=float(c["image_chi2"]),
+                    image_dim=int(c["image_dim"]),
+                    group=int(c["group"]),
+                )
+                for c in fr["candidates"]
+            ]
+        )
+    return times, cands, truth, V.mean(axis=0)
+
+
+def test_rendered_seed2_true_track_kept_and_nothing_mislabelled() -> None:
+    """Tuning seed 2's rendered candidates, which once had frames 6-11 reported on a
+    neighbouring P3P root (up to 30 deg off): in frames 4-7 the true pair of roots has
+    turned complex and the wrong root lies within the gate, and from frame 8 on the true pose
+    lies 17-30 deg from the wrong track's prediction. The true hypothesis must be kept as a
+    track over every frame (fitted from the predictions, continued by the refit's
+    chi-square), and no frame reported more than 20 deg (the benchmark's mislabel) off."""
+    times, cands, truth, centre = _rendered_seed2()
+    lab = SequenceLabeller(centre)
+    online = []
+    for t, c in zip(times, cands, strict=True):
+        lab.step(t, c)
+        online.append(lab.online_decision())
+    # the true hypothesis: a track over all frames, within 8 deg (the rival distance) of the
+    # truth at each
+    assert any(
+        len(tr.picks) == len(truth)
+        and all(
+            _angle_deg(p, truth[k]) < 8.0
+            for k, p in zip(sorted(tr.picks), tr.fit.poses, strict=True)
+        )
+        for tr in lab.tracks
+    )
+    for d in [*lab.decide(), *online]:
+        if d.pose is not None:
+            assert _angle_deg(d.pose, truth[d.frame]) < 20.0, (d.frame, d.log_lr)
+    # where the wrong root is more than 20 deg off (frames 9-11), nothing is reported
+    assert all(d.candidate is None for d in lab.decide()[9:])
