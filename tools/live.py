@@ -57,7 +57,7 @@ from satpose.datasets.live import (
     replay_sequence,
     wait_for_header,
 )
-from satpose.tools.argtypes import positive_int
+from satpose.tools.argtypes import positive_hz, positive_int, positive_seconds
 from satpose.tools.files import atomic_write, check_out, write_measurements
 from satpose.tools.pipeline import (
     TRAJECTORY_COLUMNS,
@@ -509,26 +509,6 @@ def track_folder(
 # --------------------------------------------------------------------------------------------
 
 
-def _seconds(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
-    return v
-
-
-def _hz(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a rate in Hz, got {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive rate in Hz, got {text!r}")
-    return v
-
-
 def register(subparsers: Any) -> None:
     """Add ``track`` and ``record-replay`` to the ``satpose`` command line."""
     p = subparsers.add_parser(
@@ -548,7 +528,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--live", action="store_true", help="track the folder while it is written")
     p.add_argument(
         "--until-idle",
-        type=_seconds,
+        type=positive_seconds,
         metavar="SECONDS",
         help="--live: stop when no new frame arrived for this long (default: wait until the "
         "recorder's recording.done or Ctrl-C); also how long to wait for sequence.yaml and "
@@ -587,7 +567,9 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("sequence", type=Path, metavar="SEQUENCE", help="finished sequence folder")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="new sequence folder")
-    p.add_argument("--rate", type=_hz, required=True, metavar="HZ", help="frames per second")
+    p.add_argument(
+        "--rate", type=positive_hz, required=True, metavar="HZ", help="frames per second"
+    )
     p.add_argument("--frames", type=positive_int, help="copy only the first N frames")
     p.set_defaults(handler=cmd_record_replay)
 
