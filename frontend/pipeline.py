@@ -221,6 +221,7 @@ class StereoFrontend:
         self.target = TargetFrameTracker(config=cfg.pose)
         self._history: list[tuple[float, Rigid3]] = []
         self._radii: list[float] = []
+        self._last_ring: tuple[int, float, RingMeasurement] | None = None  # index, t_s, ring
 
     # ------------------------------------------------------------------------------------------
 
@@ -288,7 +289,8 @@ class StereoFrontend:
                 failures.append(f"image ({cam}): {img.problem}")
         predicted = self._predict(t_s)
         with timer("ring"):
-            circles, obs, ellipses = self._ring(imgs, failures)
+            windows = self._gap_windows(index, t_s, imgs)
+            circles, obs, ellipses = self._ring(imgs, failures, windows, timer)
         landmarks: list[LandmarkMeasurement] = []
         with timer("panel"):
             detections = self._panel(imgs, ellipses, failures)
@@ -308,6 +310,8 @@ class StereoFrontend:
             self.orb.reset()
         with timer("ring"):
             ring = self._choose_ring(circles, obs, landmarks, predicted, failures)
+        if ring is not None:
+            self._last_ring = (index, t_s, ring)
         with timer("pose"):
             if (
                 ring is not None
@@ -369,15 +373,53 @@ class StereoFrontend:
 
     # -- ring -------------------------------------------------------------------------------
 
+    def _gap_windows(
+        self, index: int, t_s: float, imgs: dict[str, PreparedImage]
+    ) -> dict[str, tuple[int, int, int, int]]:
+        """After dropped frames (frame ``index`` comes more than one after the last with a
+        ring): per camera, the window where the ring is predicted — the last ring's circle
+        moved by the motion predicted over the gap (`_predict`: constant twist from the last
+        two poses; without one, where it was), projected, grown with the gap
+        (`RingTracker.gap_window`). Empty without a gap."""
+        if self._last_ring is None:
+            return {}
+        last_index, last_t, ring = self._last_ring
+        gap = index - last_index
+        if gap <= 1 or not self.config.ring.gap_window:
+            return {}
+        u, v = tangent_basis(ring.normal)
+        theta = np.linspace(0.0, 2.0 * math.pi, 32, endpoint=False)
+        pts = ring.center_m + ring.radius_m * (
+            np.outer(np.cos(theta), u) + np.outer(np.sin(theta), v)
+        )
+        predicted = self._predict(t_s)
+        if predicted is not None and self._history and self._history[-1][0] == last_t:
+            pts = (predicted @ self._history[-1][1].inverse()).apply(pts)
+        if np.any(pts[:, 2] <= 0):
+            return {}
+        out = {}
+        for cam, px in zip(("left", "right"), self.rig.project(pts), strict=True):
+            window = self.rings[cam].gap_window(px, gap, imgs[cam].gray.shape)
+            if window is not None:
+                out[cam] = window
+        return out
+
     def _ring(
-        self, imgs: dict[str, PreparedImage], failures: list[str]
+        self,
+        imgs: dict[str, PreparedImage],
+        failures: list[str],
+        windows: dict[str, tuple[int, int, int, int]],
+        timer: _Timer,
     ) -> tuple[list[Circle3D], dict[str, EllipseObservation], dict[str, Ellipse]]:
         """Ring ellipses in both images and the candidate 3-D circles they admit (the cone's
         two-fold ambiguity survives a short baseline: both are kept, best fit first).
 
         A camera that is tracking follows its track; one that is not acquires candidates,
-        and the largest pair that forms one consistent 3-D circle is taken."""
+        and the largest pair that forms one consistent 3-D circle is taken. After a gap
+        (``windows``, `_gap_windows`) a camera acquires in its window first; the whole image
+        is searched when the window has no candidate or its candidates form no circle."""
         options: dict[str, list[tuple[EllipseObservation, int]]] = {}
+        windowed = []
         for cam in ("left", "right"):
             tracker = self.rings[cam]
             if tracker.track is not None:
@@ -387,24 +429,21 @@ class StereoFrontend:
                     continue
                 failures.append(why or f"ring ({cam}): lost")
                 tracker.reset()
-            options[cam] = self.rings[cam].acquire(imgs[cam])
+            options[cam] = []
+            if cam in windows:
+                with timer("ring_window"):
+                    options[cam] = tracker.acquire(imgs[cam], roi=windows[cam])
+                if options[cam]:
+                    windowed.append(cam)
+            if not options[cam]:
+                options[cam] = tracker.acquire(imgs[cam])
             if not options[cam]:
                 failures.append(f"ring ({cam}): no ring-like ellipse found")
-        circles: list[Circle3D] = []
-        chosen: dict[str, tuple[EllipseObservation, int]] = {}
-        last_error = None
-        pairs = sorted(
-            ((lo, ro) for lo in options["left"] for ro in options["right"]),
-            key=lambda p: -float(p[0][0].axes_px.sum() + p[1][0].axes_px.sum()),
-        )
-        for lo, ro in pairs[: self.config.stereo_ring.max_pairs]:
-            try:
-                circles = self._circles(lo[0], ro[0])
-            except (GeometryFailure, ConicError, np.linalg.LinAlgError) as exc:
-                last_error = exc
-                continue
-            chosen = {"left": lo, "right": ro}
-            break
+        circles, chosen, last_error = self._pair(options)
+        if not circles and windowed:  # not near the prediction: the whole image after all
+            for cam in windowed:
+                options[cam] = self.rings[cam].acquire(imgs[cam])
+            circles, chosen, last_error = self._pair(options)
         if not circles:
             if last_error is not None:
                 failures.append(f"ring: {last_error}")
@@ -424,6 +463,25 @@ class StereoFrontend:
             for cam, o in obs.items()
         }
         return circles, obs, ellipses
+
+    def _pair(
+        self, options: dict[str, list[tuple[EllipseObservation, int]]]
+    ) -> tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]], Exception | None]:
+        """The largest left/right candidate pair that makes one consistent 3-D circle: its
+        circles and the pair, or no circle and the last pair's error."""
+        last_error: Exception | None = None
+        pairs = sorted(
+            ((lo, ro) for lo in options["left"] for ro in options["right"]),
+            key=lambda p: -float(p[0][0].axes_px.sum() + p[1][0].axes_px.sum()),
+        )
+        for lo, ro in pairs[: self.config.stereo_ring.max_pairs]:
+            try:
+                circles = self._circles(lo[0], ro[0])
+            except (GeometryFailure, ConicError, np.linalg.LinAlgError) as exc:
+                last_error = exc
+                continue
+            return circles, {"left": lo, "right": ro}, None
+        return [], {}, last_error
 
     def _radius_prior(self) -> tuple[float, float] | None:
         known = self.config.stereo_ring.known_ring

@@ -16,7 +16,9 @@ edge by tenths of a pixel — differently in the two cameras, i.e. a depth bias.
 
 When tracking is healthy the detector only searches a window around the prediction. When it
 is not, `acquire` returns every plausible candidate and the stereo frontend keeps the pair
-that forms one 3-D circle (`satpose.frontend.pipeline`).
+that forms one 3-D circle (`satpose.frontend.pipeline`). After dropped frames (a live tracker
+that fell behind) the frontend acquires first in a window around the ring it predicts over
+the gap (`RingTracker.gap_window`), and over the whole image only if that fails.
 """
 
 from __future__ import annotations
@@ -93,6 +95,14 @@ class RingConfig:
             arcs of its inner and outer edges (6 px apart at 7 m) into one ellipse that fits
             neither, and which arcs it mixes changes with the last bits of the image.
         outer_search_coverage: fraction of the ``edge_points`` normals such a fit must keep.
+        gap_window: after dropped frames (a live tracker that fell behind), acquire first in
+            a window around where the ring is predicted (`gap_window`), and search the whole
+            image only if that finds no ring.
+        gap_margin_per_frame: the window's margin grows by this fraction of the predicted
+            ellipse's major axis per frame of the gap (on top of ``roi_margin``): the
+            prediction's error grows with the time it bridges.
+        gap_max_area: a window larger than this fraction of the image is not worth a first
+            try: the whole image is searched at once.
     """
 
     track_points: int = 16
@@ -119,6 +129,9 @@ class RingConfig:
     )
     outer_search_scales: tuple[float, ...] = (1.0, 1.06, 1.13, 1.21, 1.3, 1.4, 1.5)
     outer_search_coverage: float = 0.7
+    gap_window: bool = True
+    gap_margin_per_frame: float = 0.05
+    gap_max_area: float = 0.5
 
 
 @dataclass
@@ -287,16 +300,20 @@ class RingTracker:
         return (self._observation(refined, source), pol), None
 
     def acquire(
-        self, image: PreparedImage, max_candidates: int = 6
+        self,
+        image: PreparedImage,
+        max_candidates: int = 6,
+        roi: tuple[int, int, int, int] | None = None,
     ) -> list[tuple[EllipseObservation, int]]:
-        """Every plausible ring edge in the whole image, refined, largest first, with its
-        polarity; at most ``max_candidates``."""
+        """Every plausible ring edge in the whole image (or the window ``roi``, ``(x0, y0,
+        x1, y1)`` [px]), refined, largest first, with its polarity; at most
+        ``max_candidates``."""
         if image.problem is not None:
             return []
         cfg = self.config
         image_s = smoothed(image.gray, cfg.edges)
         out: list[tuple[EllipseObservation, int]] = []
-        for e, pol in self._plausible(image, None, image_s, None):
+        for e, pol in self._plausible(image, roi, image_s, None):
             # the whole-image pass can miss the outer edge of a small ring next to the inner
             # one, or mix arcs of both into one ellipse; a larger concentric detection and a
             # search around each candidate both find it (as `follow` does later). Both are
@@ -317,6 +334,29 @@ class RingTracker:
             if len(out) >= max_candidates:
                 break
         return out[:max_candidates]
+
+    def gap_window(
+        self, points_px: np.ndarray, gap_frames: int, shape: tuple[int, ...]
+    ) -> tuple[int, int, int, int] | None:
+        """Where to acquire first after ``gap_frames`` frames without a measurement (1: the
+        previous frame): the box of ``points_px`` (N, 2), the ring's outline predicted for
+        this frame, grown by ``roi_margin`` plus ``gap_margin_per_frame`` per frame of the gap
+        (of its major axis) and ``roi_margin_px``, clipped to the image. None when the
+        prediction is off the image or the window would exceed ``gap_max_area``."""
+        cfg = self.config
+        if not cfg.gap_window or not np.all(np.isfinite(points_px)):
+            return None
+        lo, hi = points_px.min(axis=0), points_px.max(axis=0)
+        a = 0.5 * float(np.max(hi - lo))
+        m = (cfg.roi_margin + cfg.gap_margin_per_frame * max(gap_frames - 1, 0)) * a
+        m += cfg.roi_margin_px
+        x0, y0 = max(0, int(lo[0] - m)), max(0, int(lo[1] - m))
+        x1, y1 = min(shape[1], math.ceil(hi[0] + m)), min(shape[0], math.ceil(hi[1] + m))
+        if x1 - x0 < 2 * cfg.min_axis_px or y1 - y0 < 2 * cfg.min_axis_px:
+            return None  # off the image (or nearly)
+        if (x1 - x0) * (y1 - y0) > cfg.gap_max_area * shape[0] * shape[1]:
+            return None
+        return x0, y0, x1, y1
 
     def _larger_concentric(
         self,
