@@ -289,8 +289,8 @@ class StereoFrontend:
                 failures.append(f"image ({cam}): {img.problem}")
         predicted = self._predict(t_s)
         with timer("ring"):
-            windows = self._gap_windows(index, t_s, imgs)
-            circles, obs, ellipses = self._ring(imgs, failures, windows, timer)
+            outlines, gap = self._gap_outlines(index, t_s)
+            circles, obs, ellipses = self._ring(imgs, failures, outlines, gap, timer)
         landmarks: list[LandmarkMeasurement] = []
         with timer("panel"):
             detections = self._panel(imgs, ellipses, failures)
@@ -373,20 +373,18 @@ class StereoFrontend:
 
     # -- ring -------------------------------------------------------------------------------
 
-    def _gap_windows(
-        self, index: int, t_s: float, imgs: dict[str, PreparedImage]
-    ) -> dict[str, tuple[int, int, int, int]]:
+    def _gap_outlines(self, index: int, t_s: float) -> tuple[dict[str, np.ndarray], int]:
         """After dropped frames (frame ``index`` comes more than one after the last with a
-        ring): per camera, the window where the ring is predicted — the last ring's circle
-        moved by the motion predicted over the gap (`_predict`: constant twist from the last
-        two poses; without one, where it was), projected, grown with the gap
-        (`RingTracker.gap_window`). Empty without a gap."""
+        ring): per camera, the ring's outline (N, 2) [px] where it is predicted — the last
+        ring's circle moved by the motion predicted over the gap (`_predict`: constant twist
+        from the last two poses; without one, where it was), projected — and the gap in
+        frames. Empty without a gap."""
         if self._last_ring is None:
-            return {}
+            return {}, 0
         last_index, last_t, ring = self._last_ring
         gap = index - last_index
         if gap <= 1 or not self.config.ring.gap_window:
-            return {}
+            return {}, gap
         u, v = tangent_basis(ring.normal)
         theta = np.linspace(0.0, 2.0 * math.pi, 32, endpoint=False)
         pts = ring.center_m + ring.radius_m * (
@@ -395,29 +393,27 @@ class StereoFrontend:
         predicted = self._predict(t_s)
         if predicted is not None and self._history and self._history[-1][0] == last_t:
             pts = (predicted @ self._history[-1][1].inverse()).apply(pts)
-        if np.any(pts[:, 2] <= 0):
-            return {}
-        out = {}
-        for cam, px in zip(("left", "right"), self.rig.project(pts), strict=True):
-            window = self.rings[cam].gap_window(px, gap, imgs[cam].gray.shape)
-            if window is not None:
-                out[cam] = window
-        return out
+        if np.any(pts[:, 2] <= 0):  # behind a camera: no prediction to look at
+            return {}, gap
+        left, right = self.rig.project(pts)
+        return {"left": left, "right": right}, gap
 
     def _ring(
         self,
         imgs: dict[str, PreparedImage],
         failures: list[str],
-        windows: dict[str, tuple[int, int, int, int]],
+        outlines: dict[str, np.ndarray],
+        gap: int,
         timer: _Timer,
     ) -> tuple[list[Circle3D], dict[str, EllipseObservation], dict[str, Ellipse]]:
         """Ring ellipses in both images and the candidate 3-D circles they admit (the cone's
         two-fold ambiguity survives a short baseline: both are kept, best fit first).
 
         A camera that is tracking follows its track; one that is not acquires candidates,
-        and the largest pair that forms one consistent 3-D circle is taken. After a gap
-        (``windows``, `_gap_windows`) a camera acquires in its window first; the whole image
-        is searched when the window has no candidate or its candidates form no circle."""
+        and the largest pair that forms one consistent 3-D circle is taken. After a gap of
+        ``gap`` frames (``outlines``: `_gap_outlines`) a camera that is not tracking looks
+        where the ring is predicted first (`RingTracker.reacquire`); it acquires over the
+        whole image when that finds nothing, or when what it found forms no circle."""
         options: dict[str, list[tuple[EllipseObservation, int]]] = {}
         windowed = []
         for cam in ("left", "right"):
@@ -430,9 +426,9 @@ class StereoFrontend:
                 failures.append(why or f"ring ({cam}): lost")
                 tracker.reset()
             options[cam] = []
-            if cam in windows:
-                with timer("ring_window"):
-                    options[cam] = tracker.acquire(imgs[cam], roi=windows[cam])
+            if cam in outlines:
+                with timer("ring_reacquire"):
+                    options[cam] = tracker.reacquire(imgs[cam], outlines[cam], gap)
                 if options[cam]:
                     windowed.append(cam)
             if not options[cam]:

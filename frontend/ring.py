@@ -17,8 +17,8 @@ edge by tenths of a pixel — differently in the two cameras, i.e. a depth bias.
 When tracking is healthy the detector only searches a window around the prediction. When it
 is not, `acquire` returns every plausible candidate and the stereo frontend keeps the pair
 that forms one 3-D circle (`satpose.frontend.pipeline`). After dropped frames (a live tracker
-that fell behind) the frontend acquires first in a window around the ring it predicts over
-the gap (`RingTracker.gap_window`), and over the whole image only if that fails.
+that fell behind) the frontend first looks for the ring where it predicts it over the gap
+(`RingTracker.reacquire`), and acquires over the whole image only if that fails.
 """
 
 from __future__ import annotations
@@ -95,11 +95,13 @@ class RingConfig:
             arcs of its inner and outer edges (6 px apart at 7 m) into one ellipse that fits
             neither, and which arcs it mixes changes with the last bits of the image.
         outer_search_coverage: fraction of the ``edge_points`` normals such a fit must keep.
-        gap_window: after dropped frames (a live tracker that fell behind), acquire first in
-            a window around where the ring is predicted (`gap_window`), and search the whole
-            image only if that finds no ring.
-        gap_margin_per_frame: the window's margin grows by this fraction of the predicted
-            ellipse's major axis per frame of the gap (on top of ``roi_margin``): the
+        gap_window: after dropped frames (a live tracker that fell behind), look for the
+            ring first where it is predicted (`reacquire`: the detection nearest the
+            predicted ellipse in a window around it), and acquire over the whole image only
+            if that finds no ring.
+        gap_margin_per_frame: the window's margin, and how far a detection may lie from the
+            prediction, grow by this fraction of the predicted ellipse's major axis per frame
+            of the gap (on top of ``roi_margin`` and ``max_track_distance_px``): the
             prediction's error grows with the time it bridges.
         gap_max_area: a window larger than this fraction of the image is not worth a first
             try: the whole image is searched at once.
@@ -300,20 +302,16 @@ class RingTracker:
         return (self._observation(refined, source), pol), None
 
     def acquire(
-        self,
-        image: PreparedImage,
-        max_candidates: int = 6,
-        roi: tuple[int, int, int, int] | None = None,
+        self, image: PreparedImage, max_candidates: int = 6
     ) -> list[tuple[EllipseObservation, int]]:
-        """Every plausible ring edge in the whole image (or the window ``roi``, ``(x0, y0,
-        x1, y1)`` [px]), refined, largest first, with its polarity; at most
-        ``max_candidates``."""
+        """Every plausible ring edge in the whole image, refined, largest first, with its
+        polarity; at most ``max_candidates``."""
         if image.problem is not None:
             return []
         cfg = self.config
         image_s = smoothed(image.gray, cfg.edges)
         out: list[tuple[EllipseObservation, int]] = []
-        for e, pol in self._plausible(image, roi, image_s, None):
+        for e, pol in self._plausible(image, None, image_s, None):
             # the whole-image pass can miss the outer edge of a small ring next to the inner
             # one, or mix arcs of both into one ellipse; a larger concentric detection and a
             # search around each candidate both find it (as `follow` does later). Both are
@@ -334,6 +332,53 @@ class RingTracker:
             if len(out) >= max_candidates:
                 break
         return out[:max_candidates]
+
+    def reacquire(
+        self, image: PreparedImage, outline_px: np.ndarray, gap_frames: int
+    ) -> list[tuple[EllipseObservation, int]]:
+        """The ring after ``gap_frames`` frames without a measurement, where it is predicted:
+        ``outline_px`` (N, 2) is the predicted outline of the outer front edge. Like a
+        `follow` whose prediction comes from the 3-D motion instead of Lucas-Kanade: the
+        detections in the window around the prediction (`gap_window`), the one nearest the
+        prediction (mean distance within ``max_track_distance_px`` plus
+        ``gap_margin_per_frame`` of its major axis per frame of the gap) — or a larger
+        concentric one — refined on edges. Skips the outer-edge search of `acquire` (the
+        edge predicted is already the outer one), which is most of an acquisition's cost.
+
+        Returns:
+            ``[(observation, polarity)]``, or ``[]`` when nothing near the prediction is a
+            ring (the caller then acquires over the whole image).
+        """
+        if image.problem is not None:
+            return []
+        roi = self.gap_window(outline_px, gap_frames, image.gray.shape)
+        if roi is None:
+            return []
+        try:
+            predicted = fit_ellipse_direct(outline_px)
+        except ConicError:
+            return []
+        cfg = self.config
+        image_s = smoothed(image.gray, cfg.edges)
+        found = self._plausible(image, roi, image_s, None)
+        pts = predicted.points(64)
+        best = cfg.max_track_distance_px + cfg.gap_margin_per_frame * predicted.a * max(
+            gap_frames - 1, 0
+        )
+        chosen: tuple[Ellipse, int] | None = None
+        for e, p in found:
+            d = float(np.mean(np.abs(_distance(pts, e))))
+            if d < best:
+                chosen, best = (e, p), d
+        if chosen is None:
+            return []
+        larger = self._larger_concentric(image, image_s, chosen[0], found)
+        if larger is not None:
+            return [larger]
+        refined = self._refine(image_s, image.gray, chosen[0], chosen[1])
+        if refined is None:
+            return []
+        return [(self._observation(refined, "detected"), chosen[1])]
 
     def gap_window(
         self, points_px: np.ndarray, gap_frames: int, shape: tuple[int, ...]

@@ -11,7 +11,7 @@ import pytest
 
 from satpose.datasets.sequence import load_sequence
 from satpose.frontend.ellipses import detect_ellipses
-from satpose.frontend.measurements import FrameMeasurements
+from satpose.frontend.measurements import FrameMeasurements, RingMeasurement
 from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
 
 
@@ -51,22 +51,34 @@ def _after_gap(
 
 
 @pytest.mark.render
-def test_after_a_gap_the_ring_is_found_in_the_predicted_window(docking_small: Path) -> None:
+def test_after_a_gap_the_ring_is_found_where_it_is_predicted(docking_small: Path) -> None:
     m, searches = _after_gap(docking_small, gap_window=True)
     assert m.ring is not None, m.failures
     assert searches.rois and None not in searches.rois  # never the whole image
-    assert m.timings_ms.get("ring_window", 0.0) > 0.0
+    assert m.timings_ms.get("ring_reacquire", 0.0) > 0.0
     h, w = load_sequence(docking_small).calibration.left.size[::-1]
     for x0, y0, x1, y1 in searches.rois:
         assert (x1 - x0) * (y1 - y0) <= 0.5 * w * h  # RingConfig.gap_max_area
-    # the same ring as an acquisition over the whole image: the same edges, refined from a
-    # detection on a crop instead of the whole image, so equal to the fit's convergence
-    # (1e-9 seen; 1e-6 m and rad stated, far below the ring's 3 mm / 0.7 deg floors)
+    # the same ring as an acquisition over the whole image, within the measurement's own
+    # uncertainty: refined from another start (the detection nearest the prediction instead
+    # of the outer-edge search), the rim fit settles on slightly different edge points
+    # (0.7 mm along the line of sight seen, at 4.3 m); the radius is the outer rim's
     ref, ref_searches = _after_gap(docking_small, gap_window=False)
     assert ref.ring is not None and None in ref_searches.rois
-    np.testing.assert_allclose(m.ring.center_m, ref.ring.center_m, rtol=0, atol=1e-6)
-    np.testing.assert_allclose(m.ring.normal, ref.ring.normal, rtol=0, atol=1e-6)
-    assert m.ring.radius_m == pytest.approx(ref.ring.radius_m, abs=1e-6)
+    _same_ring(m.ring, ref.ring)
+    target = load_sequence(docking_small).target
+    assert target is not None and target.ring is not None
+    assert m.ring.radius_m == pytest.approx(target.ring.radius_m, abs=0.005)
+
+
+def _same_ring(a: RingMeasurement, b: RingMeasurement) -> None:
+    """Centre and normal agree within 3 standard deviations of their difference (both
+    measurements' covariances; statistical tier)."""
+    C = a.covariance + b.covariance
+    d_center = np.abs(a.center_m - b.center_m)
+    assert np.all(d_center <= 3 * np.sqrt(np.diag(C)[:3])), (d_center, np.sqrt(np.diag(C)[:3]))
+    angle = float(np.arccos(np.clip(a.normal @ b.normal, -1.0, 1.0)))
+    assert angle <= 3 * np.sqrt(np.trace(C[3:6, 3:6])), angle
 
 
 @pytest.mark.render
@@ -80,7 +92,9 @@ def test_a_ring_away_from_the_prediction_is_found_over_the_whole_image(
     assert m.ring is not None, m.failures
     ref, _ = _after_gap(docking_small, gap_window=False, shift_px=200)
     assert ref.ring is not None
-    np.testing.assert_allclose(m.ring.center_m, ref.ring.center_m, rtol=0, atol=1e-6)
+    # the same search over the whole image as without the window: the same ring (noise-free:
+    # the same computation after the window found nothing)
+    np.testing.assert_allclose(m.ring.center_m, ref.ring.center_m, rtol=0, atol=1e-12)
 
 
 @pytest.mark.render
@@ -91,6 +105,6 @@ def test_without_a_gap_nothing_changes(docking_small: Path) -> None:
     b, _ = _frontend(seq.calibration, gap_window=False)
     for fr in seq.frames[:3]:
         ma, mb = a.process_frame(fr), b.process_frame(fr)
-        assert "ring_window" not in ma.timings_ms
+        assert "ring_reacquire" not in ma.timings_ms
         assert ma.ring is not None and mb.ring is not None
         np.testing.assert_array_equal(ma.ring.center_m, mb.ring.center_m)
