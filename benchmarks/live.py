@@ -46,6 +46,8 @@ from satpose.datasets.live import BagReplay, replay_sequence
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import preset, scaled
 from satpose.datasets.sequence import load_sequence
+from satpose.frontend.pipeline import StereoFrontend
+from satpose.tools.evaluate import evaluate_run
 from satpose.tools.live import LiveResult, track_bag, track_folder
 from satpose.tools.pipeline import PipelineConfig, run_pipeline
 
@@ -94,6 +96,47 @@ def after_gap(result: LiveResult) -> tuple[int, float, float]:
     if sel.empty:
         return 0, np.nan, np.nan
     return len(sel), float(sel["step_cpu_ms"].median()), float(sel["frontend_ring"].median())
+
+
+def ring_on_frames(seq: Path, frames: list[int]) -> list[str]:
+    """Both re-acquisitions on the same frames (the frontend alone, frames in this order, the
+    others skipped as a live run skipped them): per variant, the frames with a ring, the
+    ring centre's and normal's error against the truth (the target frame's origin is the
+    ring's outer front edge centre, z its normal) and the ring stage's time, medians over
+    the frames that follow a gap. Table rows."""
+    sequence = load_sequence(seq)
+    assert sequence.truth is not None
+    gap = [k for i, k in enumerate(frames) if i > 0 and k - frames[i - 1] > 1]
+    rows = []
+    for variant in ("whole", "window"):
+        label, config = VARIANTS[variant]
+        front = StereoFrontend(sequence.calibration, config.frontend)
+        found, center_mm, normal_deg, ring_ms = 0, [], [], []
+        for k in frames:
+            m = front.process_frame(sequence[k])
+            if k not in gap:
+                continue
+            ring_ms.append(m.timings_ms.get("ring", np.nan))
+            if m.ring is None:
+                continue
+            found += 1
+            T = sequence.truth.pose(k)
+            center_mm.append(1e3 * float(np.linalg.norm(m.ring.center_m - T.t)))
+            cos = abs(float(m.ring.normal @ T.R[:, 2]))
+            normal_deg.append(float(np.degrees(np.arccos(min(cos, 1.0)))))
+        rows.append(
+            f"| {label} | {len(gap)} | {found} | {np.median(center_mm):.1f} | "
+            f"{np.median(normal_deg):.2f} | {np.median(ring_ms):.0f} |"
+        )
+        print(rows[-1], flush=True)
+    return rows
+
+
+def position_error_cm(seq: Path, result: LiveResult) -> str:
+    """The causal iSAM2 estimate's position error on the processed frames (`satpose eval`'s
+    ``pos_cm`` of "online filtered"), or "-"."""
+    m = evaluate_run(seq, result.out).get("online filtered")
+    return "-" if m is None else f"{m.pos_cm:.2f}"
 
 
 def track_at(
@@ -160,6 +203,7 @@ def main() -> None:
     n = len(loaded)
     variants = ["whole", "window"] if args.reacquire == "both" else [args.reacquire]
     rows, gap_rows, stages, loads = [], [], {}, []
+    most: list[int] = []  # the processed frames of the run that processed the most
     with tempfile.TemporaryDirectory(dir=args.root) as tmp:
         bag = None
         if args.source == "bag":
@@ -181,8 +225,12 @@ def main() -> None:
                     f"{s['processed']} | {s['dropped']} | {s['dropped_frames'] or '-'} | "
                     f"{lat['median']:.0f} | {lat['p95']:.0f} | "
                     + (f"{pick['p95']:.0f} ({pick['max']:.0f})" if pick["p95"] is not None else "-")
-                    + f" | {s['step_cpu_ms']['median']:.0f} | {len(result.run.estimate)} |"
+                    + f" | {s['step_cpu_ms']['median']:.0f} | {len(result.run.estimate)} | "
+                    f"{position_error_cm(seq, result)} |"
                 )
+                done = result.frames.query("status == 'processed'")["frame"].tolist()
+                if len(done) > len(most):
+                    most = [int(f) for f in done]
                 k, cpu, ring = after_gap(result)
                 gap_rows.append(
                     f"| {rate:g} Hz | {label} | {k} | "
@@ -193,6 +241,10 @@ def main() -> None:
                 loads.append(f"| {key} | {before} | {after} |")
                 print(rows[-1], flush=True)
                 print(gap_rows[-1], flush=True)
+        print(f"both re-acquisitions on the frames {most}", flush=True)
+        before = loadavg()
+        same_rows = ring_on_frames(seq, most)
+        loads.append(f"| the ring on the same frames | {before} | {loadavg()} |")
         # the profile without gaps: every frame through `satpose run` (the same step)
         print("the same frames through satpose run (no drops)", flush=True)
         before = loadavg()
@@ -232,17 +284,27 @@ def main() -> None:
         "pickup p95 (max) when idle [ms]",
         "step CPU median [ms]",
         "frames in trajectory",
+        "position error [cm]",
     ]
     header = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns)
+    same_columns = [
+        "re-acquisition",
+        "frames after a gap",
+        "with a ring",
+        "centre error median [mm]",
+        "normal error median [deg]",
+        "ring stage median [ms]",
+    ]
+    same_header = "| " + " | ".join(same_columns) + " |\n|" + "---|" * len(same_columns)
     if bag is not None:
-        source = f"""written once as a ROS 2 bag (`write_bag`: raw images, header stamps) and
-tracked as `satpose track --live BAG --rate R` does (`BagReplay`: each stereo pair arrives
-at its stamp's offset divided by R = the rate / the recorded {loaded.rate_hz:g} Hz; decoded
-only when processed)"""
+        source = f"""written once as a ROS 2 bag (`write_bag`: raw images, header
+stamps) and tracked as `satpose track --live BAG --rate R` does (`BagReplay`: each stereo
+pair arrives at its stamp's offset divided by R = the rate / the recorded {loaded.rate_hz:g}
+Hz; decoded only when processed)"""
     else:
-        source = """written into a fresh folder by `replay_sequence` at the given rate (a thread
-of the same process: per frame both PNGs copied to a temporary name and renamed, then the
-frames.csv row) while `track_folder` tracks it"""
+        source = """written into a fresh folder by `replay_sequence` at the given rate (a
+thread of the same process: per frame both PNGs copied to a temporary name and renamed,
+then the frames.csv row) while `track_folder` tracks it"""
     text = f"""# Live tracking: `satpose track --live` on a recording as it arrives ({args.source})
 
 Generated by `{command}` ({machine}, {date.today()}). Do not edit by hand.
@@ -250,8 +312,9 @@ Generated by `{command}` ({machine}, {date.today()}). Do not edit by hand.
 paper-docking at its default size (1024x768 stereo, 16 spp), the first {n} frames,
 {source} (the default pipeline config: iSAM2, the offline and Kalman estimators for
 comparison, run.rrd with JPEG images; OpenCV with its default threads). Each rate is run with
-the ring re-acquired after dropped frames in the window predicted over the gap (the default)
-and over the whole image (`frontend.ring.gap_window: false`, as before the window). The
+the ring re-acquired after dropped frames where the motion predicts it (`predicted window`,
+the default: docs/live.md "Re-acquiring the ring after a gap") and over the whole image
+(`frontend.ring.gap_window: false`, as before). The
 machine is shared with other jobs: the load average is below.
 
 {header}
@@ -264,7 +327,8 @@ tracker found the frame, over the frames that arrived while it was idle (a frame
 during another frame's step waits for it). Step CPU: the process's CPU time during a frame's
 step (all threads), what the step costs without waiting for a core of the shared machine.
 Dropped: complete frames that were not the newest when the tracker was free
-(live_frames.csv names each with its reason).
+(live_frames.csv names each with its reason). Position error: `satpose eval`'s `pos_cm` of
+the causal iSAM2 estimate (trajectory.csv) on the frames processed.
 
 ## The frames right after a gap
 
@@ -275,18 +339,29 @@ case, not counted): the ring must be found again after the target moved for the 
 |---|---|---|---|---|
 {chr(10).join(gap_rows)}
 
+### The ring on the same frames
+
+The runs above process different frames, so their position errors do not compare the two
+re-acquisitions. Here both see the same frames: those processed by the run that processed
+the most (frames {", ".join(map(str, most))}), through the frontend alone (the others skipped
+as that run skipped them); errors against the truth on the frames that follow a gap (the
+target frame's origin is the ring's outer front edge centre, z its normal).
+
+{same_header}
+{chr(10).join(same_rows)}
+
 ## Where the time of a processed frame goes (median [ms])
 
 | stage | {" | ".join(keys)} |
 |---|{"---|" * len(keys)}
 {chr(10).join(stage_rows)}
 
-Frontend stages (indented) are medians over the frames where they ran (`ring_reacquire`: the
-acquisition in the predicted window, part of `ring`); `read + frontend` includes reading the
-two images. `run (every frame)`: the same {n} frames through `satpose run --estimator online`
-(the same `FrameStep`, no frame skipped; {wall:.0f} s in all): the ring stage took
-{first:.0f} ms on the first frame (acquisition: the whole image searched) and {later:.0f} ms
-(median) on the tracked frames after it.
+Frontend stages (indented) are medians over the frames where they ran (`ring_reacquire`:
+the look where the ring is predicted after a gap, `RingTracker.reacquire`, part of `ring`);
+`read + frontend` includes reading the two images. `run (every frame)`: the same {n} frames
+through `satpose run --estimator online` (the same `FrameStep`, no frame skipped;
+{wall:.0f} s in all): the ring stage took {first:.0f} ms on the first frame (acquisition: the
+whole image searched) and {later:.0f} ms (median) on the tracked frames after it.
 
 ## Load average of the machine (1 / 5 / 15 min)
 

@@ -4,8 +4,9 @@ A *frame source* (`FrameSource`) hands over frames as they become complete; the 
 (`satpose.tools.live`, ``satpose track --live``) polls it and decides which frames it
 processes. `FolderSource` watches a sequence folder (format v1, docs/sequence_format.md) that a
 recorder is writing; `replay_sequence` is such a recorder, copying a finished sequence frame by
-frame at a given rate (``satpose record-replay``). A ROS bag replayed at its recorded rate is a
-second source of the same protocol (docs/live.md, "Adding a source").
+frame at a given rate (``satpose record-replay``). `BagReplay` is a ROS 1/ROS 2 bag replayed at
+its recorded rate, read as ``satpose import`` reads it (docs/live.md, "A ROS bag replayed at
+its recorded rate").
 
 **When a frame of a folder is complete.** Frame ``k`` is complete when
 
