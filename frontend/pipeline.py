@@ -411,13 +411,18 @@ class StereoFrontend:
 
         A camera that is tracking follows its track; one that is not acquires candidates,
         and the largest pair that forms one consistent 3-D circle is taken. After a gap of
-        ``gap`` frames (``outlines``: `_gap_outlines`) a camera that is not tracking looks
-        where the ring is predicted first (`RingTracker.reacquire`); it acquires over the
-        whole image when that finds nothing, or when what it found forms no circle."""
+        ``gap`` frames (``outlines``: `_gap_outlines`) a camera looks where the ring is
+        predicted (`RingTracker.reacquire`) instead of following its track; it acquires
+        over the whole image when that finds nothing, or when what it found forms no
+        circle."""
         options: dict[str, list[tuple[EllipseObservation, int]]] = {}
         windowed = []
         for cam in ("left", "right"):
             tracker = self.rings[cam]
+            if cam in outlines:
+                # after a gap: Lucas-Kanade from an image that many frames back finds the rim
+                # rarely, and a wrong edge sometimes; the 3-D prediction replaces it
+                tracker.reset()
             if tracker.track is not None:
                 followed, why = tracker.follow(imgs[cam])
                 if followed is not None:
