@@ -222,6 +222,8 @@ class StereoFrontend:
         self._history: list[tuple[float, Rigid3]] = []
         self._radii: list[float] = []
         self._last_ring: tuple[int, float, RingMeasurement] | None = None  # index, t_s, ring
+        self._previous_index: int | None = None  # the frame before this one that came in
+        self._index: int | None = None
 
     # ------------------------------------------------------------------------------------------
 
@@ -245,6 +247,7 @@ class StereoFrontend:
             left, right: raw images as stored (grey or BGR, 8 or 16 bit, with distortion).
         """
         timer = _Timer()
+        self._previous_index, self._index = self._index, index
         try:
             return self._process(index, t_s, left, right, timer)
         except Exception as exc:
@@ -374,16 +377,18 @@ class StereoFrontend:
     # -- ring -------------------------------------------------------------------------------
 
     def _gap_outlines(self, index: int, t_s: float) -> tuple[dict[str, np.ndarray], int]:
-        """After dropped frames (frame ``index`` comes more than one after the last with a
-        ring): per camera, the ring's outline (N, 2) [px] where it is predicted — the last
-        ring's circle moved by the motion predicted over the gap (`_predict`: constant twist
-        from the last two poses; without one, where it was), projected — and the gap in
-        frames. Empty without a gap."""
-        if self._last_ring is None:
+        """After dropped frames (frame ``index`` comes more than one after the frame this
+        frontend saw before it): per camera, the ring's outline (N, 2) [px] where it is
+        predicted — the last ring's circle moved by the motion predicted since (`_predict`:
+        constant twist from the last two poses; without one, where it was), projected — and
+        the frames since that ring. Empty without a gap: every frame of `satpose run` comes
+        right after the previous one (a frame without a ring is no gap; it was looked at)."""
+        previous = self._previous_index
+        if self._last_ring is None or previous is None or index - previous <= 1:
             return {}, 0
         last_index, last_t, ring = self._last_ring
         gap = index - last_index
-        if gap <= 1 or not self.config.ring.gap_window:
+        if not self.config.ring.gap_window:
             return {}, gap
         u, v = tangent_basis(ring.normal)
         theta = np.linspace(0.0, 2.0 * math.pi, 32, endpoint=False)
