@@ -4,8 +4,9 @@ A *frame source* (`FrameSource`) hands over frames as they become complete; the 
 (`satpose.tools.live`, ``satpose track --live``) polls it and decides which frames it
 processes. `FolderSource` watches a sequence folder (format v1, docs/sequence_format.md) that a
 recorder is writing; `replay_sequence` is such a recorder, copying a finished sequence frame by
-frame at a given rate (``satpose record-replay``). A ROS bag replayed at its recorded rate is a
-second source of the same protocol (docs/live.md, "Adding a source").
+frame at a given rate (``satpose record-replay``). `BagReplay` is a ROS 1/ROS 2 bag replayed at
+its recorded rate, read as ``satpose import`` reads it (docs/live.md, "A ROS bag replayed at
+its recorded rate").
 
 **When a frame of a folder is complete.** Frame ``k`` is complete when
 
@@ -49,12 +50,23 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import yaml
 
 from satpose.datasets.errors import SatposeError, SequenceError
+from satpose.datasets.importers.bag import BagSource
+from satpose.datasets.importers.calib import read_calibration_file
+from satpose.datasets.importers.common import RecordingError
+from satpose.datasets.importers.recording import (
+    ImportOptions,
+    first_frame_calibration,
+    open_source,
+    prepare_images,
+    recording_calibration,
+    source_kind,
+)
 from satpose.datasets.sequence import (
     FORMAT_VERSION,
     FRAMES_COLUMNS,
@@ -146,6 +158,10 @@ class FrameSource(Protocol):
         """Announced frames that are not complete yet (the tracker gives them up at a stop)."""
         ...
 
+    def notes(self) -> list[str]:
+        """Facts about the recording worth reporting at the end, one line each."""
+        ...
+
 
 @dataclass
 class _Row:
@@ -196,6 +212,11 @@ class FolderSource:
 
     def incomplete(self) -> list[Skipped]:
         return [Skipped(index=r.index, t_s=r.t_s, reason=self._why(r)) for r in self._pending]
+
+    def notes(self) -> list[str]:
+        if not self.bad_rows:
+            return []
+        return [f"{self.csv_path}: {self.bad_rows} rows could not be read and were skipped"]
 
     def poll(self) -> tuple[list[ArrivedFrame], list[Skipped]]:
         # the marker is looked at before frames.csv: every row written before it is read below
@@ -416,6 +437,198 @@ def wait_for_header(
         if stop is not None and stop():
             return None
         time.sleep(poll_s)
+
+
+# --------------------------------------------------------------------------------------------
+# A ROS bag replayed at its recorded rate
+# --------------------------------------------------------------------------------------------
+
+
+class BagReplay:
+    """A ROS 1 or ROS 2 bag replayed at its recorded rate (times ``rate``): frames arrive
+    when a camera would have delivered them.
+
+    Everything that decides *what* the frames are is `satpose import`'s
+    (`satpose.datasets.importers`): the image topics (``options.left``/``right``, else picked,
+    also by a calibration file's ``rostopic``), stereo pairing by header stamp
+    (``options.pair_tolerance_s``), the calibration (``options.calib``/``calib_right``,
+    else the bag's CameraInfo), lens resampling, ``options.grey``, the image size check. So
+    a live run on a bag sees the frames that ``satpose import`` would write.
+
+    **When a frame arrives.** The replay starts at the first `poll` (the tracker is ready then;
+    a camera started earlier would only make the first frames "before start" drops); pair
+    ``k`` with header stamp ``t_k`` arrives at ``start + (t_k - t_0) / rate`` (Unix time,
+    ``arrival_s``), whatever the tracker is doing: a poll after a long step returns every pair
+    that arrived meanwhile, with its own arrival time, and the tracker keeps the newest. The
+    messages are read from the bag when they arrive and decoded only by ``read()``, i.e. for
+    the frames the tracker processes (as `FolderSource` leaves a dropped PNG undecoded).
+
+    Frame indices count the pairs from 0 (as an import numbers them); ``t_s`` is the stamp [s].
+    The first pair is read and decoded when the replay is opened: its sizes check the
+    calibration, so a wrong calibration, a mono bag or an unsupported encoding fails here, in
+    one line naming the bag (or calibration file) and the field. A bag that turns out to be
+    corrupt or truncated later ends the replay there with a warning naming the bag. The
+    pairing's counts (unpaired images) are in `notes` once the replay has ended.
+
+    Args:
+        path: ``.bag`` (ROS 1), a ROS 2 bag folder, or a ``.db3``/``.mcap`` file.
+        options: topics, calibration, pairing (`satpose.datasets.importers.ImportOptions`;
+            the fields about writing a sequence are not used).
+        rate: replay speed, a multiple of the recorded rate (``rosbag play --rate``).
+        clock: the wall clock, Unix time [s].
+
+    Raises:
+        RecordingError: as `satpose import` for the same bag and options, or a mono bag.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        options: ImportOptions | None = None,
+        *,
+        rate: float = 1.0,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        if not (math.isfinite(rate) and rate > 0):
+            raise SatposeError(f"replay rate must be a positive multiple, got {rate}")
+        self.path = Path(path)
+        self.options = opts = options or ImportOptions()
+        self.rate = float(rate)
+        self.clock = clock
+        kind = source_kind(self.path)
+        if kind not in ("rosbag1", "rosbag2"):
+            raise RecordingError(
+                self.path, None, "not a ROS bag (.bag, .db3, .mcap or a ROS 2 bag folder)"
+            )
+        override = (
+            read_calibration_file(opts.calib, opts.calib_right) if opts.calib is not None else None
+        )
+        src, _ = open_source([self.path], opts, override)
+        assert isinstance(src, BagSource)
+        self.src = src
+        try:
+            if src.kind != "stereo":
+                raise RecordingError(
+                    self.path,
+                    "topics",
+                    f"live tracking needs a stereo pair of image topics; {src.choice}: "
+                    f"{src.left_topic} alone (name both with --left and --right)",
+                )
+            calib, note = recording_calibration(src, override)
+            self._pairs = src.pairs()
+            first = next(self._pairs, None)
+            if first is None:
+                src.check()
+                raise RecordingError(self.path, None, "holds no stereo pairs")
+            t0, ml, mr = first
+            images = (src.decode(ml, "left"), src.decode(mr, "right"))
+            calibration, self._maps, self._sizes, lens = first_frame_calibration(
+                src, calib, (t0, *images), opts.grey
+            )
+            self._notes = [*src.notes()[:1], note, *lens]
+            second = next(self._pairs, None)
+        except BaseException:
+            src.close()
+            raise
+        self._next: list[tuple[float, Any, Any]] = [first] + ([second] if second else [])
+        self._t0 = t0
+        rate_hz = 1.0 / (second[0] - t0) if second is not None else 1.0
+        self._header = SequenceHeader(
+            root=self.path,
+            name=opts.name or self.path.name.removesuffix(".bag") or "bag",
+            kind="stereo",
+            rate_hz=rate_hz,
+            calibration=calibration,
+            generator={"tool": "satpose-track", "source": src.provenance()},
+        )
+        self.start_s: float | None = None
+        self._index = 0
+        self._done = False
+
+    @property
+    def header(self) -> SequenceHeader:
+        """The bag's name, calibration and the rate of its first two pairs."""
+        return self._header
+
+    def arrival(self, t_s: float) -> float:
+        """When the pair stamped ``t_s`` arrives, Unix time [s] (after the first `poll`)."""
+        assert self.start_s is not None
+        return self.start_s + (t_s - self._t0) / self.rate
+
+    def poll(self) -> tuple[list[ArrivedFrame], list[Skipped]]:
+        now = self.clock()
+        if self.start_s is None:
+            self.start_s = now
+        ready: list[ArrivedFrame] = []
+        while self._next and self.arrival(self._next[0][0]) <= now:
+            t_s, ml, mr = self._next.pop(0)
+            ready.append(
+                ArrivedFrame(
+                    index=self._index,
+                    t_s=t_s,
+                    arrival_s=self.arrival(t_s),
+                    seen_s=now,
+                    files=(),
+                    read=_BagReader(self, t_s, ml, mr),
+                )
+            )
+            self._index += 1
+            if not self._next and not self._done:
+                self._read_next()
+        return ready, []
+
+    def _read_next(self) -> None:
+        try:
+            item = next(self._pairs, None)
+        except RecordingError as exc:  # corrupt or truncated after the start
+            log.warning("%s; the replay ends here", exc)
+            item = None
+        if item is None:
+            self._done = True
+            self.src.close()
+            return
+        self._next.append(item)
+
+    def ended(self) -> bool:
+        """True once the last pair has been handed over."""
+        return self._done and not self._next
+
+    def incomplete(self) -> list[Skipped]:
+        """Nothing: a bag's pair is there whole or not at all."""
+        return []
+
+    def notes(self) -> list[str]:
+        """One line per fact, as `satpose import` prints them: topics, calibration, lenses
+        resampled, and (once the replay has ended) the pairing's counts and dropped stamps."""
+        if not self._done:
+            return self._notes
+        out = [*self._notes, *self.src.notes()[1:]]
+        try:
+            self.src.check()
+        except RecordingError as exc:  # `satpose import` would refuse the bag
+            out.append(f"warning: {exc}")
+        return out
+
+    def close(self) -> None:
+        """Stop reading the bag."""
+        self._done = True
+        self._next = []
+        self._pairs.close()
+        self.src.close()
+
+
+class _BagReader:
+    """``ArrivedFrame.read`` of a bag pair: both messages decoded and prepared as `satpose
+    import` writes them (`prepare_images`)."""
+
+    def __init__(self, replay: BagReplay, t_s: float, left: Any, right: Any) -> None:
+        self.replay, self.t_s, self.left, self.right = replay, t_s, left, right
+
+    def __call__(self) -> tuple[np.ndarray, np.ndarray]:
+        r = self.replay
+        images = [r.src.decode(self.left, "left"), r.src.decode(self.right, "right")]
+        left, right = prepare_images(r.src, self.t_s, images, r._sizes, r._maps, r.options.grey)
+        return left, right
 
 
 # --------------------------------------------------------------------------------------------

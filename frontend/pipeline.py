@@ -223,6 +223,9 @@ class StereoFrontend:
         self.target = TargetFrameTracker(config=cfg.pose)
         self._history: list[tuple[float, Rigid3]] = []
         self._radii: list[float] = []
+        self._last_ring: tuple[int, float, RingMeasurement] | None = None  # index, t_s, ring
+        self._previous_index: int | None = None  # the frame before this one that came in
+        self._index: int | None = None
 
     # ------------------------------------------------------------------------------------------
 
@@ -246,6 +249,7 @@ class StereoFrontend:
             left, right: raw images as stored (grey or BGR, 8 or 16 bit, with distortion).
         """
         timer = _Timer()
+        self._previous_index, self._index = self._index, index
         try:
             return self._process(index, t_s, left, right, timer)
         except Exception as exc:
@@ -290,7 +294,8 @@ class StereoFrontend:
                 failures.append(f"image ({cam}): {img.problem}")
         predicted = self._predict(t_s)
         with timer("ring"):
-            circles, obs, ellipses = self._ring(imgs, failures)
+            outlines, gap = self._gap_outlines(index, t_s)
+            circles, obs, ellipses = self._ring(imgs, failures, outlines, gap, timer)
         landmarks: list[LandmarkMeasurement] = []
         with timer("panel"):
             detections = self._panel(imgs, ellipses, failures)
@@ -310,6 +315,8 @@ class StereoFrontend:
             self.orb.reset()
         with timer("ring"):
             ring = self._choose_ring(circles, obs, landmarks, predicted, failures)
+        if ring is not None:
+            self._last_ring = (index, t_s, ring)
         with timer("pose"):
             if (
                 ring is not None
@@ -371,17 +378,58 @@ class StereoFrontend:
 
     # -- ring -------------------------------------------------------------------------------
 
+    def _gap_outlines(self, index: int, t_s: float) -> tuple[dict[str, np.ndarray], int]:
+        """After dropped frames (frame ``index`` comes more than one after the frame this
+        frontend saw before it): per camera, the ring's outline (N, 2) [px] where it is
+        predicted — the last ring's circle moved by the motion predicted since (`_predict`:
+        constant twist from the last two poses; without one, where it was), projected — and
+        the frames since that ring. Empty without a gap: every frame of `satpose run` comes
+        right after the previous one (a frame without a ring is no gap; it was looked at)."""
+        previous = self._previous_index
+        if self._last_ring is None or previous is None or index - previous <= 1:
+            return {}, 0
+        last_index, last_t, ring = self._last_ring
+        gap = index - last_index
+        if not self.config.ring.gap_window:
+            return {}, gap
+        u, v = tangent_basis(ring.normal)
+        theta = np.linspace(0.0, 2.0 * math.pi, 32, endpoint=False)
+        pts = ring.center_m + ring.radius_m * (
+            np.outer(np.cos(theta), u) + np.outer(np.sin(theta), v)
+        )
+        predicted = self._predict(t_s)
+        if predicted is not None and self._history and self._history[-1][0] == last_t:
+            pts = (predicted @ self._history[-1][1].inverse()).apply(pts)
+        if np.any(pts[:, 2] <= 0):  # behind a camera: no prediction to look at
+            return {}, gap
+        left, right = self.rig.project(pts)
+        return {"left": left, "right": right}, gap
+
     def _ring(
-        self, imgs: dict[str, PreparedImage], failures: list[str]
+        self,
+        imgs: dict[str, PreparedImage],
+        failures: list[str],
+        outlines: dict[str, np.ndarray],
+        gap: int,
+        timer: _Timer,
     ) -> tuple[list[Circle3D], dict[str, EllipseObservation], dict[str, Ellipse]]:
         """Ring ellipses in both images and the candidate 3-D circles they admit (the cone's
         two-fold ambiguity survives a short baseline: both are kept, best fit first).
 
         A camera that is tracking follows its track; one that is not acquires candidates,
-        and the largest pair that forms one consistent 3-D circle is taken."""
+        and the largest pair that forms one consistent 3-D circle is taken. After a gap of
+        ``gap`` frames (``outlines``: `_gap_outlines`) a camera looks where the ring is
+        predicted (`RingTracker.reacquire`) instead of following its track; it acquires
+        over the whole image when that finds nothing, or when what it found forms no
+        circle."""
         options: dict[str, list[tuple[EllipseObservation, int]]] = {}
+        windowed = []
         for cam in ("left", "right"):
             tracker = self.rings[cam]
+            if cam in outlines:
+                # after a gap: Lucas-Kanade from an image that many frames back finds the rim
+                # rarely, and a wrong edge sometimes; the 3-D prediction replaces it
+                tracker.reset()
             if tracker.track is not None:
                 followed, why = tracker.follow(imgs[cam])
                 if followed is not None:
@@ -389,24 +437,21 @@ class StereoFrontend:
                     continue
                 failures.append(why or f"ring ({cam}): lost")
                 tracker.reset()
-            options[cam] = self.rings[cam].acquire(imgs[cam])
+            options[cam] = []
+            if cam in outlines:
+                with timer("ring_reacquire"):
+                    options[cam] = tracker.reacquire(imgs[cam], outlines[cam], gap)
+                if options[cam]:
+                    windowed.append(cam)
+            if not options[cam]:
+                options[cam] = tracker.acquire(imgs[cam])
             if not options[cam]:
                 failures.append(f"ring ({cam}): no ring-like ellipse found")
-        circles: list[Circle3D] = []
-        chosen: dict[str, tuple[EllipseObservation, int]] = {}
-        last_error = None
-        pairs = sorted(
-            ((lo, ro) for lo in options["left"] for ro in options["right"]),
-            key=lambda p: -float(p[0][0].axes_px.sum() + p[1][0].axes_px.sum()),
-        )
-        for lo, ro in pairs[: self.config.stereo_ring.max_pairs]:
-            try:
-                circles = self._circles(lo[0], ro[0])
-            except (GeometryFailure, ConicError, np.linalg.LinAlgError) as exc:
-                last_error = exc
-                continue
-            chosen = {"left": lo, "right": ro}
-            break
+        circles, chosen, last_error = self._pair(options)
+        if not circles and windowed:  # not near the prediction: the whole image after all
+            for cam in windowed:
+                options[cam] = self.rings[cam].acquire(imgs[cam])
+            circles, chosen, last_error = self._pair(options)
         if not circles:
             if last_error is not None:
                 failures.append(f"ring: {last_error}")
@@ -428,6 +473,25 @@ class StereoFrontend:
             for cam, o in obs.items()
         }
         return circles, obs, ellipses
+
+    def _pair(
+        self, options: dict[str, list[tuple[EllipseObservation, int]]]
+    ) -> tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]], Exception | None]:
+        """The largest left/right candidate pair that makes one consistent 3-D circle: its
+        circles and the pair, or no circle and the last pair's error."""
+        last_error: Exception | None = None
+        pairs = sorted(
+            ((lo, ro) for lo in options["left"] for ro in options["right"]),
+            key=lambda p: -float(p[0][0].axes_px.sum() + p[1][0].axes_px.sum()),
+        )
+        for lo, ro in pairs[: self.config.stereo_ring.max_pairs]:
+            try:
+                circles = self._circles(lo[0], ro[0])
+            except (GeometryFailure, ConicError, np.linalg.LinAlgError) as exc:
+                last_error = exc
+                continue
+            return circles, {"left": lo, "right": ro}, None
+        return [], {}, last_error
 
     def _radius_prior(self) -> tuple[float, float] | None:
         known = self.config.stereo_ring.known_ring

@@ -16,7 +16,9 @@ edge by tenths of a pixel — differently in the two cameras, i.e. a depth bias.
 
 When tracking is healthy the detector only searches a window around the prediction. When it
 is not, `acquire` returns every plausible candidate and the stereo frontend keeps the pair
-that forms one 3-D circle (`satpose.frontend.pipeline`).
+that forms one 3-D circle (`satpose.frontend.pipeline`). After dropped frames (a live tracker
+that fell behind) the frontend first looks for the ring where it predicts it over the gap
+(`RingTracker.reacquire`), and acquires over the whole image only if that fails.
 """
 
 from __future__ import annotations
@@ -96,6 +98,16 @@ class RingConfig:
         outer_search_coverage: fraction of the ``edge_points`` normals such a fit must keep.
         bands: seeds from thin dark or bright bands when the detector gives no candidate
             (`satpose.frontend.ring_bands`).
+        gap_window: after dropped frames (a live tracker that fell behind), look for the
+            ring first where it is predicted (`reacquire`: the detection nearest the
+            predicted ellipse in a window around it), and acquire over the whole image only
+            if that finds no ring.
+        gap_margin_per_frame: the window's margin, and how far a detection may lie from the
+            prediction, grow by this fraction of the predicted ellipse's major axis per frame
+            of the gap (on top of ``roi_margin`` and ``max_track_distance_px``): the
+            prediction's error grows with the time it bridges.
+        gap_max_area: a window larger than this fraction of the image is not worth a first
+            try: the whole image is searched at once.
     """
 
     track_points: int = 16
@@ -123,6 +135,9 @@ class RingConfig:
     outer_search_scales: tuple[float, ...] = (1.0, 1.06, 1.13, 1.21, 1.3, 1.4, 1.5)
     outer_search_coverage: float = 0.7
     bands: BandSeedConfig = field(default_factory=BandSeedConfig)
+    gap_window: bool = True
+    gap_margin_per_frame: float = 0.05
+    gap_max_area: float = 0.5
 
 
 @dataclass
@@ -350,6 +365,75 @@ class RingTracker:
             obs = self._observation(refined, "detected")
             if not _known(obs, out):
                 out.append((obs, pol))
+    def reacquire(
+        self, image: PreparedImage, outline_px: np.ndarray, gap_frames: int
+    ) -> list[tuple[EllipseObservation, int]]:
+        """The ring after ``gap_frames`` frames without a measurement, where it is predicted:
+        ``outline_px`` (N, 2) is the predicted outline of the outer front edge. Like a
+        `follow` whose prediction comes from the 3-D motion instead of Lucas-Kanade: the
+        detections in the window around the prediction (`gap_window`), the one nearest the
+        prediction (mean distance within ``max_track_distance_px`` plus
+        ``gap_margin_per_frame`` of its major axis per frame of the gap) — or a larger
+        concentric one — refined on edges. Skips the outer-edge search of `acquire` (the
+        edge predicted is already the outer one), which is most of an acquisition's cost.
+
+        Returns:
+            ``[(observation, polarity)]``, or ``[]`` when nothing near the prediction is a
+            ring (the caller then acquires over the whole image).
+        """
+        if image.problem is not None:
+            return []
+        roi = self.gap_window(outline_px, gap_frames, image.gray.shape)
+        if roi is None:
+            return []
+        try:
+            predicted = fit_ellipse_direct(outline_px)
+        except ConicError:
+            return []
+        cfg = self.config
+        image_s = smoothed(image.gray, cfg.edges)
+        found = self._plausible(image, roi, image_s, None)
+        pts = predicted.points(64)
+        best = cfg.max_track_distance_px + cfg.gap_margin_per_frame * predicted.a * max(
+            gap_frames - 1, 0
+        )
+        chosen: tuple[Ellipse, int] | None = None
+        for e, p in found:
+            d = float(np.mean(np.abs(_distance(pts, e))))
+            if d < best:
+                chosen, best = (e, p), d
+        if chosen is None:
+            return []
+        larger = self._larger_concentric(image, image_s, chosen[0], found)
+        if larger is not None:
+            return [larger]
+        refined = self._refine(image_s, image.gray, chosen[0], chosen[1])
+        if refined is None:
+            return []
+        return [(self._observation(refined, "detected"), chosen[1])]
+
+    def gap_window(
+        self, points_px: np.ndarray, gap_frames: int, shape: tuple[int, ...]
+    ) -> tuple[int, int, int, int] | None:
+        """Where to acquire first after ``gap_frames`` frames without a measurement (1: the
+        previous frame): the box of ``points_px`` (N, 2), the ring's outline predicted for
+        this frame, grown by ``roi_margin`` plus ``gap_margin_per_frame`` per frame of the gap
+        (of its major axis) and ``roi_margin_px``, clipped to the image. None when the
+        prediction is off the image or the window would exceed ``gap_max_area``."""
+        cfg = self.config
+        if not cfg.gap_window or not np.all(np.isfinite(points_px)):
+            return None
+        lo, hi = points_px.min(axis=0), points_px.max(axis=0)
+        a = 0.5 * float(np.max(hi - lo))
+        m = (cfg.roi_margin + cfg.gap_margin_per_frame * max(gap_frames - 1, 0)) * a
+        m += cfg.roi_margin_px
+        x0, y0 = max(0, int(lo[0] - m)), max(0, int(lo[1] - m))
+        x1, y1 = min(shape[1], math.ceil(hi[0] + m)), min(shape[0], math.ceil(hi[1] + m))
+        if x1 - x0 < 2 * cfg.min_axis_px or y1 - y0 < 2 * cfg.min_axis_px:
+            return None  # off the image (or nearly)
+        if (x1 - x0) * (y1 - y0) > cfg.gap_max_area * shape[0] * shape[1]:
+            return None
+        return x0, y0, x1, y1
 
     def _larger_concentric(
         self,

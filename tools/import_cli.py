@@ -125,20 +125,11 @@ def _handler(args: argparse.Namespace) -> None:
 
     if args.truth is None and (args.truth_frame != "left_cam_from_target" or args.hand_eye):
         raise RecordingError(Path("--truth-frame"), None, "goes with --truth FILE")
-    calib = args.calib or []
-    if len(calib) > 2:
-        raise RecordingError(Path(calib[2]), "--calib", "give one file, or two ROS camera infos")
-    options = ImportOptions(
-        left=args.left,
-        right=args.right,
+    options = recording_options(
+        args,
         mono=args.mono,
-        calib=calib[0] if calib else None,
-        calib_right=calib[1] if len(calib) == 2 else None,
         timestamps=args.timestamps,
         rate_hz=args.rate,
-        pair_tolerance_s=args.pair_tolerance_ms / 1e3,
-        max_unpaired=args.max_unpaired,
-        grey=args.grey,
         max_frames=args.frames,
         name=args.name,
         target=args.target,
@@ -170,6 +161,58 @@ def _handler(args: argparse.Namespace) -> None:
         f"wrote {report.frames} {report.kind} frames ({report.t_span_s[0]:.6f} to "
         f"{report.t_span_s[1]:.6f} s{truth_text}) from the {report.source_kind} to "
         f"{report.path} in {elapsed:.1f} s ({report.frames / max(elapsed, 1e-9):.0f} frames/s)"
+    )
+
+
+def recording_options(args: argparse.Namespace, **fields: Any) -> ImportOptions:
+    """`ImportOptions` from the options `add_recording_options` added (and ``fields``)."""
+    calib = args.calib or []
+    if len(calib) > 2:
+        raise RecordingError(Path(calib[2]), "--calib", "give one file, or two ROS camera infos")
+    return ImportOptions(
+        left=args.left,
+        right=args.right,
+        calib=calib[0] if calib else None,
+        calib_right=calib[1] if len(calib) == 2 else None,
+        pair_tolerance_s=args.pair_tolerance_ms / 1e3,
+        max_unpaired=args.max_unpaired,
+        grey=args.grey,
+        **fields,
+    )
+
+
+def add_recording_options(cameras: Any, timing: Any) -> None:
+    """The options that say how a recording's frames are read — image topics, calibration,
+    grey, stereo pairing — shared by ``satpose import`` and ``satpose track BAG --live``
+    (`recording_options` reads them). ``cameras``, ``timing``: argparse groups (or parsers)."""
+    cameras.add_argument(
+        "--left", metavar="TOPIC", help="bag: the left (or only) camera's image topic"
+    )
+    cameras.add_argument("--right", metavar="TOPIC", help="bag: the right camera's image topic")
+    cameras.add_argument(
+        "--calib",
+        type=Path,
+        action="append",
+        metavar="FILE",
+        help="calibration overriding the recording's: Kalibr camchain, OpenCV YAML/XML, ROS "
+        "camera-info YAML (twice: left then right), satpose calib.yaml",
+    )
+    cameras.add_argument(
+        "--grey", action="store_true", help="grey images (colour converted as they are read)"
+    )
+    timing.add_argument(
+        "--pair-tolerance-ms",
+        type=_nonneg,
+        default=DEFAULT_TOLERANCE_S * 1e3,
+        metavar="MS",
+        help=f"largest stamp difference of a stereo pair (default {DEFAULT_TOLERANCE_S * 1e3:g})",
+    )
+    timing.add_argument(
+        "--max-unpaired",
+        type=_fraction,
+        default=DEFAULT_MAX_UNPAIRED,
+        metavar="FRACTION",
+        help=f"largest fraction of unpaired images accepted (default {DEFAULT_MAX_UNPAIRED:g})",
     )
 
 
@@ -214,39 +257,13 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--out", type=Path, required=True, metavar="SEQ", help="sequence folder")
     g = p.add_argument_group("cameras and calibration")
-    g.add_argument("--left", metavar="TOPIC", help="bag: the left (or only) camera's image topic")
-    g.add_argument("--right", metavar="TOPIC", help="bag: the right camera's image topic")
-    g.add_argument("--mono", action="store_true", help="import the left camera only")
-    g.add_argument(
-        "--calib",
-        type=Path,
-        action="append",
-        metavar="FILE",
-        help="calibration overriding the recording's: Kalibr camchain, OpenCV YAML/XML, ROS "
-        "camera-info YAML (twice: left then right), satpose calib.yaml",
-    )
-    g.add_argument(
-        "--grey", action="store_true", help="write grey images (colour converted at import)"
-    )
     t = p.add_argument_group("time")
+    add_recording_options(g, t)
+    g.add_argument("--mono", action="store_true", help="import the left camera only")
     t.add_argument(
         "--timestamps", type=Path, metavar="FILE", help="video/images: one time per frame"
     )
     t.add_argument("--rate", type=_positive, metavar="HZ", help="video/images: the frame rate")
-    t.add_argument(
-        "--pair-tolerance-ms",
-        type=_nonneg,
-        default=DEFAULT_TOLERANCE_S * 1e3,
-        metavar="MS",
-        help=f"largest stamp difference of a stereo pair (default {DEFAULT_TOLERANCE_S * 1e3:g})",
-    )
-    t.add_argument(
-        "--max-unpaired",
-        type=_fraction,
-        default=DEFAULT_MAX_UNPAIRED,
-        metavar="FRACTION",
-        help=f"largest fraction of unpaired images accepted (default {DEFAULT_MAX_UNPAIRED:g})",
-    )
     t.add_argument("--frames", type=positive_int, metavar="N", help="import the first N frames")
     r = p.add_argument_group("truth and target")
     r.add_argument("--truth", type=Path, metavar="FILE", help="TUM or CSV trajectory")

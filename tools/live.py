@@ -49,16 +49,20 @@ import yaml
 
 from satpose.backend import Estimate
 from satpose.datasets.errors import SatposeError
+from satpose.datasets.importers import source_kind
+from satpose.datasets.importers.common import DEFAULT_MAX_UNPAIRED, DEFAULT_TOLERANCE_S
 from satpose.datasets.live import (
     POLL_S,
     ArrivedFrame,
+    BagReplay,
     FolderSource,
     FrameSource,
     replay_sequence,
     wait_for_header,
 )
-from satpose.tools.argtypes import positive_int
+from satpose.tools.argtypes import positive_factor, positive_hz, positive_int, positive_seconds
 from satpose.tools.files import atomic_write, check_out, write_measurements
+from satpose.tools.import_cli import add_recording_options, recording_options
 from satpose.tools.pipeline import (
     TRAJECTORY_COLUMNS,
     FrameStep,
@@ -106,12 +110,15 @@ class LiveResult:
         run: the run's estimate and measurements (as `satpose.tools.pipeline.run_pipeline`).
         frames: one row per frame of the recording (`LIVE_COLUMNS`).
         stopped_by: why tracking stopped.
+        notes: what the source reports about the recording (`FrameSource.notes`: a bag's
+            topics, calibration and pairing counts).
     """
 
     out: Path
     run: RunResult
     frames: pd.DataFrame
     stopped_by: str
+    notes: tuple[str, ...] = ()
 
     @property
     def processed(self) -> int:
@@ -405,6 +412,9 @@ def track_live(
         tracker.close()
         table = tracker.table()
         summary = live_summary(table, stopped_by)
+        notes = source.notes()
+        if notes:
+            summary["notes"] = notes
         try:
             finals = step.finish(head.root, len(table))
         except RunError as exc:
@@ -426,7 +436,7 @@ def track_live(
         "live": summary,
     }
     run = write_run(out, step, finals, prov, timings=_timings(step, table))
-    return LiveResult(out=out, run=run, frames=table, stopped_by=stopped_by)
+    return LiveResult(out=out, run=run, frames=table, stopped_by=stopped_by, notes=tuple(notes))
 
 
 def provenance_live(root: Path, state: str) -> dict[str, Any]:
@@ -504,51 +514,88 @@ def track_folder(
         )
 
 
+def track_bag(
+    source: BagReplay,
+    out: Path,
+    config: PipelineConfig | None = None,
+    *,
+    until_idle_s: float | None = None,
+    overwrite: bool = False,
+    spawn: bool = False,
+    connect: str | None = None,
+    progress: Callable[[dict[str, Any]], None] | None = None,
+) -> LiveResult:
+    """`track_live` on a ROS bag replayed at its recorded rate
+    (`satpose.datasets.live.BagReplay`, opened with the topics, calibration, pairing options
+    and replay speed: ``BagReplay(bag, ImportOptions(...), rate=2.0)``) until the bag's end,
+    the idle timeout or Ctrl-C (`ctrl_c_stops`). Closes the bag.
+
+    Raises:
+        RecordingError: the bag turned out unreadable (one line naming the file and field).
+        RunError: as `track_live`.
+    """
+    with ctrl_c_stops() as stopped:
+        try:
+            return track_live(
+                source,
+                out,
+                config,
+                overwrite=overwrite,
+                spawn=spawn,
+                connect=connect,
+                until_idle_s=until_idle_s,
+                stop=stopped,
+                progress=progress,
+            )
+        finally:
+            source.close()
+
+
+def is_bag(path: Path) -> bool:
+    """``path`` names a ROS bag (``.bag``, ``.db3``, ``.mcap``, a folder with metadata.yaml),
+    whether or not it exists; anything else is taken for a sequence folder."""
+    if path.suffix.lower() in (".bag", ".db3", ".mcap"):
+        return True
+    return path.is_dir() and source_kind(path) == "rosbag2"
+
+
 # --------------------------------------------------------------------------------------------
 # Command line
 # --------------------------------------------------------------------------------------------
-
-
-def _seconds(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
-    return v
-
-
-def _hz(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a rate in Hz, got {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive rate in Hz, got {text!r}")
-    return v
 
 
 def register(subparsers: Any) -> None:
     """Add ``track`` and ``record-replay`` to the ``satpose`` command line."""
     p = subparsers.add_parser(
         "track",
-        help="online estimate of a recording as it is written (--live), or of a finished one",
+        help="online estimate of a recording as it is written or replayed (--live), or of a "
+        "finished one",
         description="With --live: process the frames of a sequence folder as a recorder "
         "writes them (a frame counts once its frames.csv row ends with a newline and its "
-        "PNGs are whole), always the newest complete frame (older ones that arrived "
-        "meanwhile are dropped and named), with the online estimator (iSAM2); write the run "
-        "folder as it goes and stream to Rerun. Stops when the recorder writes "
-        "recording.done, after --until-idle seconds without a new frame, or at Ctrl-C (the "
-        "run folder is then written whole). Without --live: the same as `satpose run "
-        "--estimator online` on a finished folder. See docs/live.md.",
+        "PNGs are whole), or of a ROS 1/ROS 2 bag replayed at its recorded rate (header "
+        "stamps; topics, calibration and pairing as `satpose import` reads them), always the "
+        "newest frame that arrived (older ones that arrived meanwhile are dropped and named), "
+        "with the online estimator (iSAM2); write the run folder as it goes and stream to "
+        "Rerun. Stops when the recorder writes recording.done or the bag ends, after "
+        "--until-idle seconds without a new frame, or at Ctrl-C (the run folder is then "
+        "written whole). Without --live: the same as `satpose run --estimator online` on a "
+        "finished folder. See docs/live.md.",
     )
-    p.add_argument("sequence", type=Path, metavar="SEQUENCE", help="sequence folder")
+    p.add_argument(
+        "sequence",
+        type=Path,
+        metavar="SEQUENCE|BAG",
+        help="sequence folder, or a ROS bag (.bag, .db3, .mcap, ROS 2 bag folder) with --live",
+    )
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="run folder")
-    p.add_argument("--live", action="store_true", help="track the folder while it is written")
+    p.add_argument(
+        "--live",
+        action="store_true",
+        help="track the folder while it is written, or the bag as it replays",
+    )
     p.add_argument(
         "--until-idle",
-        type=_seconds,
+        type=positive_seconds,
         metavar="SECONDS",
         help="--live: stop when no new frame arrived for this long (default: wait until the "
         "recorder's recording.done or Ctrl-C); also how long to wait for sequence.yaml and "
@@ -574,6 +621,14 @@ def register(subparsers: Any) -> None:
         help="also stream to a running Rerun viewer (HOST:PORT or rerun+http:// URL; "
         "default 127.0.0.1:9876)",
     )
+    g = p.add_argument_group("a bag (--live), read as `satpose import` reads it")
+    g.add_argument(
+        "--rate",
+        type=positive_factor,
+        metavar="FACTOR",
+        help="replay at this multiple of the recorded rate (as `rosbag play --rate`; default 1)",
+    )
+    add_recording_options(g, g)
     p.set_defaults(handler=cmd_track)
 
     p = subparsers.add_parser(
@@ -587,7 +642,9 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("sequence", type=Path, metavar="SEQUENCE", help="finished sequence folder")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="new sequence folder")
-    p.add_argument("--rate", type=_hz, required=True, metavar="HZ", help="frames per second")
+    p.add_argument(
+        "--rate", type=positive_hz, required=True, metavar="HZ", help="frames per second"
+    )
     p.add_argument("--frames", type=positive_int, help="copy only the first N frames")
     p.set_defaults(handler=cmd_record_replay)
 
@@ -598,6 +655,17 @@ def cmd_track(args: argparse.Namespace) -> None:
     from satpose.datasets.config import load_config
 
     connect = viewer_url(args.connect) if args.connect is not None else None
+    bag = is_bag(args.sequence)
+    if not bag and _bag_options_given(args):
+        raise SatposeError(
+            f"{args.sequence}: --rate, --left, --right, --calib, --grey, --pair-tolerance-ms "
+            "and --max-unpaired go with a bag (this is taken for a sequence folder)"
+        )
+    if bag and not args.live:
+        raise SatposeError(
+            f"{args.sequence}: a bag is tracked as it replays: add --live (or `satpose import` "
+            "it and track the sequence folder)"
+        )
     if not args.live:  # a finished folder: exactly `satpose run --estimator online`
         if args.until_idle is not None:
             raise SatposeError("--until-idle needs --live")
@@ -606,14 +674,18 @@ def cmd_track(args: argparse.Namespace) -> None:
         cmd_run(argparse.Namespace(**{**vars(args), "estimator": "online", "connect": connect}))
         return
     config = load_config(PipelineConfig, args.config) if args.config else PipelineConfig()
-    print(
-        f"tracking {args.sequence} as it is written -> {args.out} "
-        f"(stops at {args.sequence}/recording.done"
-        + (f", after {args.until_idle:g} s without a frame" if args.until_idle else "")
-        + " or Ctrl-C)",
-        file=sys.stderr,
-        flush=True,
-    )
+    idle = f", after {args.until_idle:g} s without a frame" if args.until_idle else ""
+    replay = None
+    if bag:  # opened before anything is said or written: a bad bag is one line
+        rate = 1.0 if args.rate is None else args.rate
+        replay = BagReplay(args.sequence, recording_options(args), rate=rate)
+        speed = "" if args.rate in (None, 1.0) else f" x {args.rate:g}"
+        what = f"replaying {args.sequence} at its recorded rate{speed}"
+        end = f"(stops at the bag's end{idle} or Ctrl-C)"
+    else:
+        what = f"tracking {args.sequence} as it is written"
+        end = f"(stops at {args.sequence}/recording.done{idle} or Ctrl-C)"
+    print(f"{what} -> {args.out} {end}", file=sys.stderr, flush=True)
     bar = tqdm(desc="track", unit="frame", file=sys.stderr, dynamic_ncols=True, delay=0.5)
 
     def progress(status: dict[str, Any]) -> None:
@@ -622,19 +694,22 @@ def cmd_track(args: argparse.Namespace) -> None:
             dropped=status["dropped"], latency_ms=f"{status['latency_ms']:.0f}", refresh=False
         )
 
+    common: dict[str, Any] = {
+        "until_idle_s": args.until_idle,
+        "overwrite": args.overwrite,
+        "spawn": args.spawn,
+        "connect": connect,
+        "progress": progress,
+    }
     try:
-        result = track_folder(
-            args.sequence,
-            args.out,
-            config,
-            until_idle_s=args.until_idle,
-            overwrite=args.overwrite,
-            spawn=args.spawn,
-            connect=connect,
-            progress=progress,
-        )
+        if replay is not None:
+            result = track_bag(replay, args.out, config, **common)
+        else:
+            result = track_folder(args.sequence, args.out, config, **common)
     finally:
         bar.close()
+    for note in result.notes:
+        print(f"  {note}")
     print(summary_line(result.summary()))
     print(
         f"online estimate of {len(result.run.estimate)} frames in {args.out}/trajectory.csv; "
@@ -642,6 +717,15 @@ def cmd_track(args: argparse.Namespace) -> None:
     )
     if result.run.bad_frames.count:
         print(result.run.bad_frames.summary(result.processed))
+
+
+def _bag_options_given(args: argparse.Namespace) -> bool:
+    return (
+        any(getattr(args, k) is not None for k in ("rate", "left", "right", "calib"))
+        or args.grey
+        or args.pair_tolerance_ms != DEFAULT_TOLERANCE_S * 1e3
+        or args.max_unpaired != DEFAULT_MAX_UNPAIRED
+    )
 
 
 def cmd_record_replay(args: argparse.Namespace) -> None:
@@ -677,6 +761,7 @@ __all__ = [
     "ctrl_c_stops",
     "live_summary",
     "register",
+    "track_bag",
     "track_folder",
     "track_live",
 ]

@@ -383,22 +383,30 @@ class BagSource(FrameSource):
                     self.stats["left"].paired += 1
                     yield ns / 1_000_000_000, decode_image(msg, self.path, self.left_topic), None
                 return
-            yield from self._pairs()
+            for t_s, ml, mr in self.pairs():
+                yield t_s, self.decode(ml, "left"), self.decode(mr, "right")
         finally:
             self.close()
 
-    def _pairs(self) -> Iterator[StereoFrame]:
+    def pairs(self) -> Iterator[tuple[float, Any, Any]]:
+        """``(t_s, left message, right message)`` of a stereo bag in stamp order, not decoded
+        (`decode`): a live replay decodes only the frames it processes. Closes the bag when
+        exhausted."""
         assert self.right_topic is not None
-        topics = {"left": self.left_topic, "right": self.right_topic}
         stream = pair_by_stamp(
             self._messages(), round(self.tolerance_s * 1e9), self.stats["left"], self.stats["right"]
         )
-        for ns, ml, mr in stream:
-            yield (
-                ns / 1_000_000_000,
-                decode_image(ml, self.path, topics["left"]),
-                decode_image(mr, self.path, topics["right"]),
-            )
+        try:
+            for ns, ml, mr in stream:
+                yield ns / 1_000_000_000, ml, mr
+        finally:
+            self.close()
+
+    def decode(self, msg: Any, camera: Literal["left", "right"]) -> np.ndarray:
+        """An image message of ``camera``'s topic as an OpenCV array (`decode_image`)."""
+        topic = self.left_topic if camera == "left" else self.right_topic
+        assert topic is not None
+        return decode_image(msg, self.path, topic)
 
     # ----------------------------------------------------------------------------------------
 

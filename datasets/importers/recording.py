@@ -251,6 +251,82 @@ def _size(img: np.ndarray) -> tuple[int, int]:
     return int(img.shape[1]), int(img.shape[0])
 
 
+def recording_calibration(
+    src: FrameSource, override: SourceCalibration | None
+) -> tuple[SourceCalibration, str]:
+    """The calibration to use: ``override`` (``--calib``) or what the recording carries, and
+    a note saying which. Raises `RecordingError` when there is none."""
+    if override is not None:
+        return override, f"calibration: {override.path} (--calib)"
+    calib = src.calibration()
+    if calib is None:
+        raise RecordingError(
+            src.path,
+            "calibration",
+            "the recording carries none: give --calib FILE (Kalibr camchain, OpenCV "
+            "YAML/XML, ROS camera-info YAML or satpose calib.yaml)",
+        )
+    return calib, f"calibration: from the recording ({calib.path})"
+
+
+def first_frame_calibration(
+    src: FrameSource,
+    calib: SourceCalibration,
+    first: tuple[float, np.ndarray, np.ndarray | None],
+    grey: bool,
+) -> tuple[
+    Calibration, list[tuple[np.ndarray, np.ndarray] | None], list[tuple[int, int]], list[str]
+]:
+    """Format v1's calibration of ``calib`` (`recording_calibration`), sized by the
+    recording's first frame.
+
+    Returns:
+        the calibration, each camera's resampling maps (None: the images stay as they are),
+        the image sizes ``(width, height)`` of the first frame (after ``grey``) and notes
+        (lenses resampled).
+
+    Raises:
+        RecordingError: a calibration whose size disagrees with the images, or that does not
+        fit the recording (mono for a stereo recording, no stereo extrinsic).
+    """
+    _, left0, right0 = first
+    if grey:
+        left0 = to_grey(left0)
+        right0 = to_grey(right0) if right0 is not None else None
+    sizes = [_size(left0)] + ([_size(right0)] if right0 is not None else [])
+    calibration, maps, notes = _resolve_calibration(src, calib, sizes)
+    return calibration, maps, sizes, notes
+
+
+def prepare_images(
+    src: FrameSource,
+    t_s: float,
+    images: list[np.ndarray],
+    sizes: list[tuple[int, int]],
+    maps: list[tuple[np.ndarray, np.ndarray] | None],
+    grey: bool,
+) -> list[np.ndarray]:
+    """A frame's images as format v1 stores them: grey if asked, the first frame's size
+    (else `RecordingError` naming the camera's origin and the time), resampled where the
+    lens needs it (`first_frame_calibration`'s maps)."""
+    out = []
+    for k, (cam, img) in enumerate(zip(("left", "right"), images, strict=False)):
+        if grey:
+            img = to_grey(img)
+        if _size(img) != sizes[k]:
+            raise RecordingError(
+                Path(src.image_origin(cam)),
+                "image size",
+                f"the image at t = {t_s:.9f} s is {_size(img)[0]}x{_size(img)[1]}, the "
+                f"first one was {sizes[k][0]}x{sizes[k][1]}",
+            )
+        m = maps[k]
+        if m is not None:
+            img = cv2.remap(img, m[0], m[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        out.append(img)
+    return out
+
+
 def import_recording(
     sources: list[Path],
     out: Path,
@@ -293,28 +369,13 @@ def import_recording(
     report = ImportReport(path=out, kind=src.kind, source_kind=kind)
     frames: Iterator[tuple[float, np.ndarray, np.ndarray | None]] = src.frames()
     try:
-        calib = override if override is not None else src.calibration()
-        if calib is None:
-            raise RecordingError(
-                src.path,
-                "calibration",
-                "the recording carries none: give --calib FILE (Kalibr camchain, OpenCV "
-                "YAML/XML, ROS camera-info YAML or satpose calib.yaml)",
-            )
-        if override is not None:
-            report.notes.append(f"calibration: {override.path} (--calib)")
-        else:
-            report.notes.append(f"calibration: from the recording ({calib.path})")
+        calib, note = recording_calibration(src, override)
+        report.notes.append(note)
         first = next(frames, None)
         if first is None:
             src.check()
             raise RecordingError(src.path, None, "holds no frames")
-        _, left0, right0 = first
-        if opts.grey:
-            left0 = to_grey(left0)
-            right0 = to_grey(right0) if right0 is not None else None
-        sizes = [_size(left0)] + ([_size(right0)] if right0 is not None else [])
-        calibration, maps, lens_notes = _resolve_calibration(src, calib, sizes)
+        calibration, maps, sizes, lens_notes = first_frame_calibration(src, calib, first, opts.grey)
         report.notes.extend(lens_notes)
         _write(
             src, frames, first, out, opts, calibration, maps, sizes, target, truth, report, progress
@@ -364,23 +425,9 @@ def _write(
                 if pose is None:
                     no_truth.append(t)
                     continue
-            imgs = [left] + ([right] if right is not None else [])
-            for k, (cam, img) in enumerate(zip(("left", "right"), imgs, strict=False)):
-                if opts.grey:
-                    img = to_grey(img)
-                if _size(img) != sizes[k]:
-                    raise RecordingError(
-                        Path(src.image_origin(cam)),
-                        "image size",
-                        f"the image at t = {t:.9f} s is {_size(img)[0]}x{_size(img)[1]}, the "
-                        f"first one was {sizes[k][0]}x{sizes[k][1]}",
-                    )
-                m = maps[k]
-                if m is not None:
-                    img = cv2.remap(
-                        img, m[0], m[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
-                    )
-                imgs[k] = img
+            imgs = prepare_images(
+                src, t, [left] + ([right] if right is not None else []), sizes, maps, opts.grey
+            )
             if times and t <= times[-1]:
                 raise RecordingError(
                     Path(src.image_origin("left")),

@@ -12,8 +12,11 @@ import numpy as np
 import pytest
 
 from satpose.datasets.errors import SequenceError
+from satpose.datasets.importers import ImportOptions, RecordingError
+from satpose.datasets.importers.writers import BagWriter, write_bag
 from satpose.datasets.live import (
     RECORDING_DONE,
+    BagReplay,
     FolderSource,
     Recorder,
     replay_sequence,
@@ -227,3 +230,96 @@ def test_replay_keeps_its_pace(synthetic_sequence: Path, tmp_path: Path) -> None
     )
     # frame k is written no earlier than k / rate after the start (a lower bound, not timing)
     assert all(s - t0 >= k / 20.0 for k, s in enumerate(stamps))
+
+
+# --------------------------------------------------------------------------------------------
+# A ROS bag replayed at its recorded rate (`BagReplay`)
+# --------------------------------------------------------------------------------------------
+
+
+class _Clock:
+    """A wall clock the test sets (Unix time [s]): the replay's schedule without waiting."""
+
+    def __init__(self, now: float) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.mark.parametrize(("ros", "rate"), [(1, 1.0), (2, 4.0)])
+def test_a_bag_replays_its_pairs_at_their_recorded_times(
+    synthetic_sequence: Path, tmp_path: Path, ros: int, rate: float
+) -> None:
+    seq = load_sequence(synthetic_sequence)  # 4 frames 0.5 s apart
+    bag = write_bag(seq, tmp_path / ("rec.bag" if ros == 1 else "rec"), ros=ros)  # type: ignore[arg-type]
+    clock = _Clock(1000.0)
+    replay = BagReplay(bag, rate=rate, clock=clock)
+    head = replay.header
+    assert head.kind == "stereo" and head.root == bag
+    assert head.rate_hz == pytest.approx(2.0, rel=1e-9)  # from the first two stamps
+    for cam in ("left", "right"):
+        a, b = head.calibration.camera(cam), seq.calibration.camera(cam)  # type: ignore[arg-type]
+        assert a.size == b.size
+        np.testing.assert_allclose(a.K, b.K, rtol=0, atol=1e-9)  # the import's bound
+        np.testing.assert_allclose(a.dist, b.dist, rtol=0, atol=1e-9)
+    frames, skipped = replay.poll()  # the replay starts: pair 0 arrives now
+    assert [f.index for f in frames] == [0] and skipped == []
+    assert frames[0].arrival_s == 1000.0 and frames[0].files == ()
+    clock.now = 1000.0 + 0.5 / rate - 1e-6  # just before pair 1 is due
+    assert replay.poll() == ([], [])
+    clock.now = 1000.0 + 1.2 / rate  # pairs 1 and 2 are due, 3 is not
+    frames, _ = replay.poll()
+    assert [f.index for f in frames] == [1, 2]
+    assert [f.arrival_s for f in frames] == [1000.0 + 0.5 / rate, 1000.0 + 1.0 / rate]
+    assert all(f.seen_s == clock.now for f in frames)
+    for f in frames:
+        fr = seq.frames[f.index]
+        assert f.t_s == round(fr.t_s * 1e9) / 1e9  # the header stamp, in ns
+        left, right = f.read()  # decoded only now, exactly the images written
+        np.testing.assert_array_equal(left, fr.left())
+        np.testing.assert_array_equal(right, fr.right())
+    assert not replay.ended()
+    clock.now += 10.0
+    frames, _ = replay.poll()
+    assert [f.index for f in frames] == [3] and replay.ended()
+    notes = replay.notes()
+    assert any("pairing within 5 ms: 4 pairs" in n for n in notes)
+    assert any("calibration: from the recording" in n for n in notes)
+    replay.close()
+
+
+def test_bag_replay_takes_the_import_options(synthetic_sequence: Path, tmp_path: Path) -> None:
+    seq = load_sequence(synthetic_sequence)
+    topics = ("/a/image_raw", "/b/image_raw")
+    bag = write_bag(seq, tmp_path / "rec", ros=2, topics=topics, camera_info=False)
+    with pytest.raises(RecordingError, match="calibration: the recording carries none"):
+        BagReplay(bag)
+    opts = ImportOptions(
+        left=topics[1], right=topics[0], calib=synthetic_sequence / "calib.yaml", grey=True
+    )
+    replay = BagReplay(bag, opts, clock=_Clock(0.0))
+    (f,), _ = replay.poll()
+    left, right = f.read()
+    np.testing.assert_array_equal(left, seq.frames[0].right())  # the topics as given
+    assert right.ndim == 2  # --grey: the colour camera converted
+    replay.close()
+
+
+def test_bag_replay_refuses_what_it_cannot_track(synthetic_sequence: Path, tmp_path: Path) -> None:
+    seq = load_sequence(synthetic_sequence)
+    missing = tmp_path / "none.bag"
+    with pytest.raises(RecordingError, match=f"^{missing}: does not exist"):
+        BagReplay(missing)
+    bag = tmp_path / "info_only"
+    with BagWriter(bag, 2) as w:
+        w.write("/cam0/camera_info", 1, w.camera_info_msg(1, seq.calibration.left))
+    with pytest.raises(RecordingError, match=f"^{bag}: topics: no sensor_msgs/Image"):
+        BagReplay(bag)
+    mono = tmp_path / "mono.bag"
+    with BagWriter(mono, 1) as w:
+        w.write("/cam0/image_raw", 1, w.image_msg(1, seq.frames[0].right()))
+    with pytest.raises(RecordingError, match=f"^{mono}: topics: live tracking needs a stereo"):
+        BagReplay(mono)
+    with pytest.raises(RecordingError, match="not a ROS bag"):
+        BagReplay(synthetic_sequence)

@@ -16,10 +16,11 @@ import rerun as rr
 import yaml
 from rerun.chunk import RrdReader
 
-from satpose.datasets.live import RECORDING_DONE, Recorder
+from satpose.datasets.importers.writers import BagWriter, write_bag
+from satpose.datasets.live import RECORDING_DONE, BagReplay, Recorder
 from satpose.datasets.sequence import SequenceWriter, load_sequence
 from satpose.tools.cli import main
-from satpose.tools.live import LIVE_COLUMNS, frame_ranges, track_folder
+from satpose.tools.live import LIVE_COLUMNS, frame_ranges, track_bag, track_folder
 from satpose.tools.pipeline import TRAJECTORY_COLUMNS, read_estimate_npz
 
 REPLAY_HZ = 2.0
@@ -284,3 +285,93 @@ def test_a_run_folder_is_not_replaced_without_overwrite(
     assert code == 2
     assert "not a run folder" in capsys.readouterr().err
     assert (tmp_path / "run" / "notes.txt").read_text() == "mine"
+
+
+# --------------------------------------------------------------------------------------------
+# A ROS bag replayed at its recorded rate
+# --------------------------------------------------------------------------------------------
+
+
+class _SteppedClock:
+    """A bag replay's wall clock that moves one frame period per processed frame: the bag's
+    frames come exactly as fast as the tracker takes them, so none is dropped however loaded
+    the machine is (what `_Lockstep` does for a folder). Starts at the real time."""
+
+    def __init__(self, period_s: float) -> None:
+        self.now = time.time()
+        self.period_s = period_s
+
+    def __call__(self) -> float:
+        return self.now
+
+    def step(self, status: dict[str, Any]) -> None:
+        self.now += self.period_s
+
+
+def test_live_from_a_bag_gives_the_poses_of_track_on_the_folder(
+    docking_small: Path, tmp_path: Path
+) -> None:
+    seq = load_sequence(docking_small)
+    bag = write_bag(seq, tmp_path / "docking.bag", ros=1)
+    clock = _SteppedClock(1.0 / seq.rate_hz)
+    result = track_bag(BagReplay(bag, clock=clock), tmp_path / "run", progress=clock.step)
+    assert result.processed == len(seq) and result.dropped == []
+    assert main(["track", str(docking_small), "--out", str(tmp_path / "ref")]) == 0
+    a = pd.read_csv(tmp_path / "ref" / "trajectory.csv")
+    b = pd.read_csv(tmp_path / "run" / "trajectory.csv")
+    assert list(a.columns) == list(b.columns) and len(b) == len(seq)
+    # The same images; the stamps come back from integer ns (within 0.5 ns of t_s) and the
+    # extrinsic through stereoRectify's R, P (1e-15): equal up to one rounding step of
+    # trajectory.csv's 9 decimals (noise-free), as `satpose run` on the imported bag.
+    np.testing.assert_allclose(a.to_numpy(), b.to_numpy(), rtol=0, atol=1.5e-9)
+
+
+def test_a_bag_replayed_faster_than_the_step_drops_frames(
+    docking_small: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    three = load_sequence(_only(docking_small, [0, 1, 2], tmp_path / "three"))
+    bag = write_bag(three, tmp_path / "rec", ros=2)
+    run = tmp_path / "run"
+    # recorded 5 s apart, replayed 5 ms apart: frames 1 and 2 both arrive during frame 0's
+    # step (an acquisition: far longer than 10 ms), so 1 is dropped and 2 processed
+    assert main(["track", str(bag), "--live", "--rate", "1000", "--out", str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "pairing within 5 ms: 3 pairs; unpaired 0 of 3 left, 0 of 3 right" in out
+    assert "2 of 3 frames processed, 1 dropped (behind 1: frames 1)" in out
+    assert "stopped: the recording ended" in out
+    frames = pd.read_csv(run / "live_frames.csv")
+    assert frames["status"].tolist() == ["processed", "dropped", "processed"]
+    assert (frames.loc[frames["status"] == "processed", "latency_ms"] > 0).all()
+    prov = yaml.safe_load((run / "run.yaml").read_text())
+    assert prov["state"] == "complete" and prov["sequence"] == str(bag.resolve())
+    assert prov["live"]["dropped_frames"] == "1"
+    assert pd.read_csv(run / "trajectory.csv")["frame"].tolist() == [0, 2]
+
+
+@pytest.mark.parametrize("case", ["missing", "no image topic", "not live", "options on a folder"])
+def test_bad_bag_input_is_one_line_exit_2(
+    synthetic_sequence: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str
+) -> None:
+    seq = load_sequence(synthetic_sequence)
+    run = tmp_path / "run"
+    live = ["--live", "--out", str(run)]
+    if case == "missing":
+        bag = tmp_path / "absent.bag"
+        args, where = [str(bag), *live], f"{bag}: does not exist"
+    elif case == "no image topic":
+        bag = tmp_path / "info_only"
+        with BagWriter(bag, 2) as w:
+            w.write("/cam0/camera_info", 1, w.camera_info_msg(1, seq.calibration.left))
+        args, where = [str(bag), *live], f"{bag}: topics: no sensor_msgs/Image"
+    elif case == "not live":
+        bag = write_bag(seq, tmp_path / "rec", ros=2)
+        args, where = [str(bag), "--out", str(run)], f"{bag}: a bag is tracked as it replays"
+    else:
+        args = [str(synthetic_sequence), *live, "--rate", "2"]
+        where = f"{synthetic_sequence}: --rate, --left"
+    assert main(["track", *args]) == 2
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"satpose track: error: {where}"), lines[0]
+    assert not run.exists()
