@@ -31,7 +31,7 @@ from _common import machine_summary, write_page  # benchmarks/_common.py (script
 
 from satpose.datasets.random_family import random_draw
 from satpose.datasets.render import StereoRenderer
-from satpose.datasets.scenarios import Scenario, scaled
+from satpose.datasets.scenarios import Scenario, scaled, trajectory
 from satpose.datasets.seed_split import TUNING_SEEDS
 from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
 from satpose.frontend.stereo import refine_circle
@@ -56,8 +56,6 @@ def variant(s: Scenario, name: str) -> Scenario:
 
 def measure(s: Scenario, frame: int) -> dict[str, float] | None:
     """Depth / lateral / radius error of the clean annulus' circle at ``frame``."""
-    from satpose.datasets.scenarios import trajectory
-
     pose = trajectory(s).left_cam_from_target[frame]
     calib = s.rig.calibration()
     rad = StereoRenderer(s, parts={"ring_front": 1.0}).radiance(frame, pose)

@@ -525,16 +525,10 @@ class StereoFrontend:
             return circles, chosen
         fits.sort(key=lambda x: x[0])
         best = fits[0][2]
-        new_chosen = {}
-        for k, cam in enumerate(("left", "right")):
-            points = best.rim_points[k] if len(best.rim_points[k]) >= 6 else pts[k]
-            try:
-                o = projected_observation(
-                    self.rig, fits[0][1], Camera(cam), points, best.rms_px, chosen[cam][0].source
-                )
-            except GeometryFailure:
-                return circles, chosen
-            new_chosen[cam] = (o, chosen[cam][1])
+        points = tuple(r if len(r) >= 6 else p for r, p in zip(best.rim_points, pts, strict=True))
+        new_chosen = self._reprojected(fits[0][1], points, best.rms_px, chosen)
+        if new_chosen is None:
+            return circles, chosen
         return [c for _, c, _ in fits], new_chosen
 
     def _outer_rim(
@@ -581,21 +575,31 @@ class StereoFrontend:
         fits.sort(key=lambda x: x[0])
         best = fits[0][2]
         assert best is not None
-        new_chosen = {}
+        new_chosen = self._reprojected(fits[0][1], best.points, best.rms_px, chosen)
+        if new_chosen is None:
+            return circles, chosen
+        return [c for _, c, f in fits if f is not None], new_chosen
+
+    def _reprojected(
+        self,
+        circle: Circle3D,
+        points: tuple[np.ndarray, ...],
+        rms_px: float,
+        chosen: dict[str, tuple[EllipseObservation, int]],
+    ) -> dict[str, tuple[EllipseObservation, int]] | None:
+        """The ring observations of both cameras replaced by ``circle``'s images with the
+        edge points it was fitted to (left, right), polarities kept; None if its image is not
+        an ellipse in a camera."""
+        out = {}
         for k, cam in enumerate(("left", "right")):
             try:
                 o = projected_observation(
-                    self.rig,
-                    fits[0][1],
-                    Camera(cam),
-                    best.points[k],
-                    best.rms_px,
-                    chosen[cam][0].source,
+                    self.rig, circle, Camera(cam), points[k], rms_px, chosen[cam][0].source
                 )
             except GeometryFailure:
-                return circles, chosen
-            new_chosen[cam] = (o, chosen[cam][1])
-        return [c for _, c, f in fits if f is not None], new_chosen
+                return None
+            out[cam] = (o, chosen[cam][1])
+        return out
 
     def _circles(self, left: EllipseObservation, right: EllipseObservation) -> list[Circle3D]:
         """Both circular sections of the left cone, each refined jointly on both images' edge

@@ -32,7 +32,13 @@ import cv2
 import numpy as np
 
 from satpose.datasets.geometry import Rigid3
-from satpose.frontend.stereo import Circle3D, GeometryFailure, StereoRig, tangent_basis
+from satpose.frontend.stereo import (
+    Circle3D,
+    GeometryFailure,
+    StereoRig,
+    circle_covariance,
+    tangent_basis,
+)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -171,8 +177,14 @@ def outline_distances(
     k = _segments(points, hull)
     k1 = (k + 1) % len(hull)
     dist = _line_distances(points, hull[k], hull[k1], hull.mean(axis=0)[None])
-    kind = np.where(base[k] != base[k1], 2, base[k].astype(int))
-    return dist, kind
+    return dist, _segment_kinds(base, k)
+
+
+def _segment_kinds(base: np.ndarray, seg: np.ndarray) -> np.ndarray:
+    """Kind of hull segments ``seg`` from their vertices' origins (``base``: per hull vertex,
+    on the base): 0 rim arc, 1 base arc, 2 silhouette."""
+    nxt = base[(seg + 1) % len(base)]
+    return np.where(base[seg] != nxt, 2, base[seg].astype(int))
 
 
 @dataclass
@@ -245,9 +257,7 @@ def fit_ring_outline(
             inside = hull.mean(axis=0)[None]
             r0 = _line_distances(p, px[0][ia], px[0][ib], inside)
             res.append(r0)
-            base = idx >= S
-            nxt = base[(seg + 1) % len(idx)]
-            kinds.append(np.where(base[seg] != nxt, 2, base[seg].astype(int)))
+            kinds.append(_segment_kinds(idx >= S, seg))
             if jacobian:
                 cols = [
                     (_line_distances(p, q[ia], q[ib], inside) - r0) / steps[j]
@@ -320,19 +330,13 @@ def fit_ring_outline(
         cov = np.linalg.inv(H) * sigma**2
     except np.linalg.LinAlgError:
         raise GeometryFailure("ring outline: the fit is not constrained by its points") from None
-    u, v = tangent_basis(s.n)
-    G = np.zeros((7, 6))
-    G[:3, :3] = np.eye(3)
-    G[3:6, 3] = u
-    G[3:6, 4] = v
-    G[6, 5] = s.r
-    cov7 = G @ cov[:6, :6] @ G.T
+    cov7 = circle_covariance(cov[:6, :6], s.n, s.r)
     rim_pts = (
         cams[0][2][(kinds[:n_left] == 0) & (np.abs(res[:n_left]) < 3 * sigma)],
         cams[1][2][(kinds[n_left:] == 0) & (np.abs(res[n_left:]) < 3 * sigma)],
     )
     return OutlineFit(
-        circle=Circle3D(center=s.c, normal=s.n, radius=s.r, covariance=0.5 * (cov7 + cov7.T)),
+        circle=Circle3D(center=s.c, normal=s.n, radius=s.r, covariance=cov7),
         height_m=s.h,
         height_sigma_m=float(math.sqrt(max(cov[6, 6], 0.0))) * s.r,
         rim_points=rim_pts,

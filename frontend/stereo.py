@@ -431,17 +431,23 @@ def refine_circle(
         cov6 = np.linalg.inv(J.T @ J) * s2
     except np.linalg.LinAlgError:
         raise GeometryFailure("the ring circle is not constrained by its edge points") from None
-    # Map the local parameters [dc, du, dv, dlog r] to [center, normal, radius].
-    u, v = tangent_basis(n)
+    cov7 = circle_covariance(cov6, n, r)
+    if n @ c > 0:
+        n = -n
+    return Circle3D(center=c, normal=n, radius=r, covariance=cov7)
+
+
+def circle_covariance(cov6: np.ndarray, normal: np.ndarray, radius: float) -> np.ndarray:
+    """The 7x7 covariance of ``[center, normal, radius]`` (`Circle3D.covariance`) from that of
+    the local parameters ``[dc (3), du, dv, dlog r]`` (``tangent_basis(normal)``), symmetric."""
+    u, v = tangent_basis(normal)
     G = np.zeros((7, 6))
     G[:3, :3] = np.eye(3)
     G[3:6, 3] = u
     G[3:6, 4] = v
-    G[6, 5] = r
+    G[6, 5] = radius
     cov7 = G @ cov6 @ G.T
-    if n @ c > 0:
-        n = -n
-    return Circle3D(center=c, normal=n, radius=r, covariance=0.5 * (cov7 + cov7.T))
+    return 0.5 * (cov7 + cov7.T)
 
 
 def _with_radius_prior(
