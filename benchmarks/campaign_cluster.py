@@ -64,6 +64,18 @@ distributed:
       OPENBLAS_NUM_THREADS: 1
       MKL_NUM_THREADS: 1
       OPENCV_FOR_THREADS_NUM: 1
+  worker:
+    profile:
+      enabled: false
+    memory:
+      monitor-interval: 1s
+  admin:
+    tick:
+      interval: 1s
+    system-monitor:
+      interval: 2s
+      gil:
+        enabled: false
 """
 """docs/campaigns.md's settings for `dask worker` on another machine."""
 

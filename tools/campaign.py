@@ -512,6 +512,20 @@ def _kind(v: Any) -> str:
     return type(v).__name__
 
 
+QUIET_WORKER = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+    "distributed.admin.system-monitor.gil.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+}
+"""Dask settings for the LocalCluster's workers (passed on by the nanny). Dask's statistical
+profiler samples every thread's stack every 10 ms under the GIL, and every process's event loop
+wakes every 20 ms (the tick) to watch itself; with one CPU-bound cell per core, these and the
+100 ms memory monitor take the core from the cells (docs/results/campaign_scaling.md).
+Workers started by hand take the same settings from a Dask config file (docs/campaigns.md)."""
+
+
 def _client(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:
     import dask
     from distributed import Client, LocalCluster
@@ -537,6 +551,7 @@ def _client(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:
             "distributed.nanny.pre-spawn-environ": {**env, **THREAD_ENV},
             # A worker that dies mid-cell: the cell is tried once more, then recorded failed.
             "distributed.scheduler.allowed-failures": 1,
+            **QUIET_WORKER,
         }
     )
     cluster = LocalCluster(
