@@ -17,6 +17,8 @@ filter) with the configurations below and scores them with `satpose eval`:
   disparity-bias variable too.
 - ``rim only``: the frontend's rim-only refit (``rim.enabled``).
 - both.
+- ``known ring radius``: the user states the interface's outer rim radius
+  (``stereo_ring.known_ring``: 0.5 m, sigma 1 mm): how much that helps; also with the outline.
 
 Writes docs/results/launch_adapter.md.
 """
@@ -36,8 +38,12 @@ from satpose.datasets.random_family import metered, random_draw, validity
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import LightConfig, MotionConfig, scaled
 from satpose.datasets.target import MetalConfig
+from satpose.frontend.pipeline import KnownRing
 from satpose.tools.evaluate import evaluate_run
 from satpose.tools.pipeline import PipelineConfig, run_pipeline
+
+RADIUS_M = 0.5
+"""The ring's outer front rim radius [m]."""
 
 
 def scenario(frames: int, size: tuple[int, int], spp: int) -> Any:
@@ -45,7 +51,7 @@ def scenario(frames: int, size: tuple[int, int], spp: int) -> Any:
     t = base.target
     ring = replace(
         t.ring,
-        outer_radius_m=0.5,
+        outer_radius_m=RADIUS_M,
         inner_radius_m=0.47,
         height_m=0.10,
         rim_fillet_m=0.0,
@@ -91,8 +97,17 @@ def _outline(c: PipelineConfig) -> PipelineConfig:
     return replace(c, frontend=replace(c.frontend, outline=o))
 
 
+def _known(c: PipelineConfig) -> PipelineConfig:
+    """The user states the interface's outer rim radius (0.5 m, 1 mm sigma):
+    ``stereo_ring.known_ring``."""
+    sr = replace(c.frontend.stereo_ring, known_ring=KnownRing(outer_radius_m=RADIUS_M))
+    return replace(c, frontend=replace(c.frontend, stereo_ring=sr))
+
+
 CONFIGS = {
     "default": lambda c: c,
+    "known ring radius": _known,
+    "known ring radius + outline": lambda c: _known(_outline(c)),
     "outline": _outline,
     "outline + disparity bias 0.2 px": lambda c: _bias(_outline(c), 0.2),
     "disparity bias 0.2 px": lambda c: _bias(c, 0.2),
