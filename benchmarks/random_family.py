@@ -81,8 +81,12 @@ def ring_checks(seq_path: Path, run: Path, scenario: Any) -> dict[str, float]:
 
 
 def pipeline_config(args: argparse.Namespace) -> PipelineConfig:
-    """The default `satpose run` configuration, with ``--disparity-bias`` if given."""
+    """The default `satpose run` configuration, with ``--disparity-bias`` and
+    ``--largest-ring`` if given."""
     c = PipelineConfig()
+    if args.largest_ring:
+        sr = replace(c.frontend.stereo_ring, behind_sigma=None)
+        c = replace(c, frontend=replace(c.frontend, stereo_ring=sr))
     if args.disparity_bias is None:
         return c
     m = replace(c.backend.measurements, ring_disparity_bias_px=args.disparity_bias)
@@ -147,6 +151,7 @@ def markdown(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
         f"{args.count} --frames {args.frames} --size {args.size[0]}x{args.size[1]} --spp "
         f"{args.spp}"
         + ("" if args.disparity_bias is None else f" --disparity-bias {args.disparity_bias:g}")
+        + (" --largest-ring" if args.largest_ring else "")
         + f"` ({machine_summary()}; {time.strftime('%Y-%m-%d')}). Do not edit by hand.",
         "",
         "Per sequence: per-frame (frontend) and offline-smoother mean errors (position of the "
@@ -272,6 +277,12 @@ def main() -> None:
         type=float,
         metavar="PX",
         help="the backend's ring_disparity_bias_px (default: the backend's default, off)",
+    )
+    parser.add_argument(
+        "--largest-ring",
+        action="store_true",
+        help="the old ring choice: the largest consistent pair wins (stereo_ring.behind_sigma: "
+        "null)",
     )
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()

@@ -64,6 +64,7 @@ from satpose.frontend.rim import (
     projected_observation,
 )
 from satpose.frontend.ring import Detector, RingConfig, RingTracker
+from satpose.frontend.ring_choice import front_choice, transferred_ellipse
 from satpose.frontend.ring_outline import OutlineConfig, OutlineFit, fit_ring_outline
 from satpose.frontend.stereo import (
     Circle3D,
@@ -105,6 +106,13 @@ class StereoRingConfig:
     center_sigma_floor_m: float = 0.003
     disparity_sigma_floor_px: float = 0.12
     known_ring: KnownRing | None = None
+    behind_sigma: float | None = 3.0
+    transfer: bool = True
+
+    def __post_init__(self) -> None:
+        b = self.behind_sigma
+        if b is not None and not (math.isfinite(b) and b > 0):
+            raise ValueError(f"stereo_ring.behind_sigma must be > 0 or null, got {b}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -447,11 +455,12 @@ class StereoFrontend:
                 options[cam] = tracker.acquire(imgs[cam])
             if not options[cam]:
                 failures.append(f"ring ({cam}): no ring-like ellipse found")
-        circles, chosen, last_error = self._pair(options)
+        acquired = any(self.rings[cam].track is None for cam in options)
+        circles, chosen, last_error = self._pair(options, imgs if acquired else None)
         if not circles and windowed:  # not near the prediction: the whole image after all
             for cam in windowed:
                 options[cam] = self.rings[cam].acquire(imgs[cam])
-            circles, chosen, last_error = self._pair(options)
+            circles, chosen, last_error = self._pair(options, imgs)
         if not circles:
             if last_error is not None:
                 failures.append(f"ring: {last_error}")
@@ -475,23 +484,76 @@ class StereoFrontend:
         return circles, obs, ellipses
 
     def _pair(
-        self, options: dict[str, list[tuple[EllipseObservation, int]]]
+        self,
+        options: dict[str, list[tuple[EllipseObservation, int]]],
+        imgs: dict[str, PreparedImage] | None = None,
     ) -> tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]], Exception | None]:
-        """The largest left/right candidate pair that makes one consistent 3-D circle: its
-        circles and the pair, or no circle and the last pair's error."""
+        """The left/right candidate pair that makes the ring's outer front rim: of the pairs
+        that make one consistent 3-D circle, the largest that no smaller consistent circle
+        shows to lie behind the ring's front (`satpose.frontend.ring_choice`); its circles
+        and the pair, or no circle and the last pair's error. With ``imgs`` (acquisition),
+        candidates that found no partner are first carried into the other camera through
+        the depth of a consistent circle (`_transferred`)."""
+        cfg = self.config.stereo_ring
         last_error: Exception | None = None
         pairs = sorted(
             ((lo, ro) for lo in options["left"] for ro in options["right"]),
             key=lambda p: -float(p[0][0].axes_px.sum() + p[1][0].axes_px.sum()),
         )
-        for lo, ro in pairs[: self.config.stereo_ring.max_pairs]:
+        found: list[tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]] = []
+        for lo, ro in pairs[: cfg.max_pairs]:
             try:
                 circles = self._circles(lo[0], ro[0])
             except (GeometryFailure, ConicError, np.linalg.LinAlgError) as exc:
                 last_error = exc
                 continue
-            return circles, {"left": lo, "right": ro}, None
-        return [], {}, last_error
+            found.append((circles, {"left": lo, "right": ro}))
+            if cfg.behind_sigma is None:
+                break  # the largest consistent pair wins
+        if not found:
+            return [], {}, last_error
+        if imgs is not None and cfg.behind_sigma is not None and cfg.transfer:
+            found += self._transferred(options, found, imgs)
+        if len(found) > 1:
+            found.sort(key=lambda f: -f[0][0].radius)
+            assert cfg.behind_sigma is not None
+            k = front_choice([f[0][0] for f in found], cfg.behind_sigma)
+            return found[k][0], found[k][1], None
+        return found[0][0], found[0][1], None
+
+    def _transferred(
+        self,
+        options: dict[str, list[tuple[EllipseObservation, int]]],
+        found: list[tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]],
+        imgs: dict[str, PreparedImage],
+    ) -> list[tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]]:
+        """Consistent pairs made of a camera's candidate that paired with nothing and the
+        edge found where it falls in the other camera at the depth of the largest consistent
+        circle (`transferred_ellipse`, `RingTracker.refine_at`); only circles smaller than
+        that one (the rim inside an edge that may lie behind it)."""
+        used = {id(p[cam]) for _, p in found for cam in ("left", "right")}
+        reference = found[0][0][0]
+        out = []
+        for src, dst in (("left", "right"), ("right", "left")):
+            for cand in options[src]:
+                if id(cand) in used:
+                    continue
+                try:
+                    e = transferred_ellipse(self.rig, cand[0].conic, Camera(src), reference)
+                    other = self.rings[dst].refine_at(imgs[dst], e, cand[1])
+                    if other is None:
+                        continue
+                    pair = {src: cand, dst: other}
+                    circles = self._circles(pair["left"][0], pair["right"][0])
+                except (GeometryFailure, ConicError, np.linalg.LinAlgError):
+                    continue
+                if circles[0].radius < reference.radius:
+                    # only a smaller circle can show the reference to lie behind the rim; a
+                    # larger one from a transferred edge is no better founded than the pairs
+                    # the detector gave (an edge beside the transferred one is stereo-
+                    # consistent too, at another depth)
+                    out.append((circles, pair))
+        return out
 
     def _radius_prior(self) -> tuple[float, float] | None:
         known = self.config.stereo_ring.known_ring

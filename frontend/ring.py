@@ -365,6 +365,7 @@ class RingTracker:
             obs = self._observation(refined, "detected")
             if not _known(obs, out):
                 out.append((obs, pol))
+
     def reacquire(
         self, image: PreparedImage, outline_px: np.ndarray, gap_frames: int
     ) -> list[tuple[EllipseObservation, int]]:
@@ -478,6 +479,21 @@ class RingTracker:
                 if best is None or obs.axes_px.sum() > best[0].axes_px.sum() + 1.0:
                     best = (obs, pol)
         return best
+
+    def refine_at(
+        self, image: PreparedImage, e: Ellipse, polarity: int
+    ) -> tuple[EllipseObservation, int] | None:
+        """The edge near a given ellipse ``e`` (e.g. another camera's candidate transferred
+        through 3-D), refined like a detection: with ``polarity``, else with mixed polarity;
+        None where no well-supported edge lies within ``edge_search_px``."""
+        if image.problem is not None:
+            return None
+        image_s = smoothed(image.gray, self.config.edges)
+        for pol in dict.fromkeys((polarity, 0)):
+            refined = self._refine(image_s, image.gray, e, pol)
+            if refined is not None:
+                return self._observation(refined, "detected"), pol
+        return None
 
     def commit(self, obs: EllipseObservation, image: PreparedImage, polarity: int) -> None:
         """Keep ``obs`` as the track for the next frame."""
