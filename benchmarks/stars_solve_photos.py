@@ -212,6 +212,8 @@ def cell(sol: StarSolution, v: str, d: dict) -> list[str]:
         f'{d["bore_arcsec"]:.0f}" / {d["roll_arcsec"]:+.0f}" / {d["fov_pct"]:+.3f} %' if d else ""
     )
     v = v if v == "right" else f"**{v}**"
+    if sol.band_deg is not None and not (sol.band_deg[0] <= sol.camera.fov_deg <= sol.band_deg[1]):
+        v += f" (found by the {sol.band_deg[0]:g}-{sol.band_deg[1]:g} deg band)"
     m = f"{sol.star_ids.size}/{sol.predicted}"
     return [v, ours, diff, m, f"{sol.rmse_arcsec:.0f}", f"{sol.cpu_ms:.0f}"]
 

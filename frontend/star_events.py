@@ -23,13 +23,20 @@ _NEIGHBOURS = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dx, dy) !=
 
 
 def hot_pixels(
-    events: Events, width: int, height: int, ratio: float = 4.0, min_events: int = 20
+    events: Events,
+    width: int,
+    height: int,
+    ratio: float = 4.0,
+    min_events: int = 20,
+    flat: np.ndarray | None = None,
 ) -> np.ndarray:
     """Flat indices ``y * width + x`` of pixels with at least ``min_events`` events and more
-    than ``ratio`` times the events of each of their 8 neighbours."""
+    than ``ratio`` times the events of each of their 8 neighbours. ``flat``: the events'
+    flat indices if the caller has them (a stream-long array less)."""
     if len(events) == 0:
         return np.zeros(0, dtype=np.int64)
-    flat = events.y.astype(np.int64) * width + events.x.astype(np.int64)
+    if flat is None:
+        flat = events.y.astype(np.int64) * width + events.x.astype(np.int64)
     cnt = np.bincount(flat, minlength=width * height).reshape(height, width)
     pad = np.pad(cnt, 1)
     nmax = np.zeros_like(cnt)
@@ -113,7 +120,7 @@ def stream_noise(
     n_hot = 0
     flat = events.y.astype(np.int32) * width + events.x
     if n and hot_ratio > 0:
-        hot = hot_pixels(events, width, height, hot_ratio)
+        hot = hot_pixels(events, width, height, hot_ratio, flat=flat)
         if hot.size:
             is_hot = np.zeros(width * height, dtype=bool)
             is_hot[hot] = True

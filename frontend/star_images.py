@@ -499,7 +499,9 @@ class StarSolveConfig:
     Attributes:
         fov_ranges_deg: horizontal fields of view the camera may have, ``(min, max)``
             pairs [deg] (edge to edge of the image width), tried in order, each with its
-            own tetra3rs database, until one gives a verified solution. A database covers
+            own tetra3rs database, until one gives a verified solution (whose fitted field
+            may lie outside the band that found it, within the searched range:
+            `searched_fov_deg`; the solution names the band). A database covers
             patterns from the short side at ``min`` to the diagonal at ``max``; a wide range
             costs time and memory once per process (about 4 s for 10.4-12.4 deg, 10 s for
             8-25 deg). The default, for an unknown camera, covers 3-70 deg in three bands,
@@ -571,6 +573,9 @@ class StarSolution:
         predicted: stars the solution predicts in the image (verification) (K,).
         false_alarm: probability of the matches by chance (`_false_alarm`).
         cpu_ms: CPU time of extraction, identification, refinement and checks [ms].
+        band_deg: the field-of-view band ``(min, max)`` [deg] whose database identified
+            the stars (`StarSolveConfig.fov_ranges_deg`); the fitted field of view may lie
+            outside it (`_verify`), or None.
     """
 
     status: str
@@ -586,6 +591,7 @@ class StarSolution:
     predicted: int = 0
     false_alarm: float = 1.0
     cpu_ms: float = 0.0
+    band_deg: tuple[float, float] | None = None
 
 
 def no_solution(reason: str, stars: ImageStars | None = None, cpu_ms: float = 0.0) -> StarSolution:
@@ -795,7 +801,7 @@ def _solve_band(
         )
         pi, sj = pi[ref.inlier], sj[ref.inlier]
     elapsed = cpu()
-    verdict = _verify(c, fov_range, stars, prow, ppx, pi, sj, ref.R, ref.camera, cat)
+    verdict = _verify(c, stars, prow, ppx, pi, sj, ref.R, ref.camera, cat)
     if verdict:
         return no_solution(f"verification failed: {verdict}", stars, elapsed)
     r = cat.unit[prow[pi]]
@@ -816,6 +822,7 @@ def _solve_band(
         int(prow.size),
         fa,
         cpu(),
+        (lo, hi),
     )
 
 
@@ -869,9 +876,18 @@ def _false_alarm(stars: ImageStars, pred_px: np.ndarray, m: int, radius: np.ndar
     return float(min(dist[need], 1.0))
 
 
+def searched_fov_deg(c: StarSolveConfig) -> tuple[float, float]:
+    """The horizontal fields of view the search covers [deg]: from the smallest band's
+    minimum to the largest band's maximum, 2 % wider each side (a field fitted just past
+    a band's edge). The bands are an order in which to search one range (the default's
+    three cover 3-70 deg), not separate allowed ranges."""
+    lo = min(b[0] for b in c.fov_ranges_deg)
+    hi = max(b[1] for b in c.fov_ranges_deg)
+    return 0.98 * lo, 1.02 * hi
+
+
 def _verify(
     c: StarSolveConfig,
-    fov_range: tuple[float, float],
     stars: ImageStars,
     prow: np.ndarray,
     ppx: np.ndarray,
@@ -898,10 +914,14 @@ def _verify(
         rho = float(spearmanr(stars.flux[sj], -cat.mag[prow[pi]]).statistic)
         if not rho >= c.min_rank_correlation:
             return f"spot brightness does not follow catalogue magnitude (rank corr. {rho:.2f})"
+    # The field of view against the whole search, not the band that identified the stars:
+    # a band's database holds patterns beyond its nominal range (from its short side at
+    # the minimum), and a verified solution found by the 8-25 deg band at 6.07 deg (an
+    # openstartracker frame) was refused while the 3-8 deg band found no pattern.
     fov = cam.fov_deg
-    lo, hi = fov_range
-    if not (lo * 0.98 <= fov <= hi * 1.02):
-        return f"field of view {fov:.3f} deg outside {lo}-{hi} deg"
+    lo, hi = searched_fov_deg(c)
+    if not (lo <= fov <= hi):
+        return f"field of view {fov:.3f} deg outside the searched {lo:.3g}-{hi:.3g} deg"
     return ""
 
 
@@ -927,5 +947,5 @@ def check_attitude(
     cat = solver_catalogue(scales[0], scales[1], c.epoch_yr)
     prow, ppx = _predict(cat, R, camera, float(np.max(cat.mag)))
     pi, sj = _match(ppx, stars.px, np.maximum(c.match_radius_px, 3 * stars.sigma_px))
-    verdict = _verify(c, fov_range, stars, prow, ppx, pi, sj, R, camera, cat)
+    verdict = _verify(c, stars, prow, ppx, pi, sj, R, camera, cat)
     return verdict, int(pi.size), int(prow.size)

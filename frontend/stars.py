@@ -231,29 +231,46 @@ class _SortedPasses:
     first_ev: np.ndarray  # first sorted position of each pixel
     last_ev: np.ndarray
     net: np.ndarray  # polarity sum so far, sorted order
-    run_of: np.ndarray  # sorted position -> run index
     pixel_cut: np.ndarray  # per pixel: its first run is cut_start
     pixel_open: np.ndarray  # per pixel: its last run is open_end
     edge_s: float
-    ts: np.ndarray  # sorted times [s]
+    t_s: np.ndarray  # times in the events' order (``t_s[order]``: sorted order)
+    t_scale: float  # t_s * t_scale: [s]
 
 
 def _sorted_passes(
-    t_s: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray, edge_s: float | None
+    t_s: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    p: np.ndarray,
+    edge_s: float | None,
+    t_scale: float = 1.0,
 ) -> _SortedPasses:
+    # ``t_s * t_scale`` are the times [s]: the tracker passes integer microseconds, so that
+    # only the gathered times are converted (the same values as converting all first).
     # Stable sort by pixel (radix sorts of the 16-bit coordinates): time order kept within it.
+    # The stream-long arrays are the tracker's whole-stream step (2.8 M events at 6 deg/s):
+    # only what the levels need is gathered into the sorted order, in 32-bit integers and
+    # in place where possible (each fresh stream-long array costs page faults as well).
     order = np.lexsort((np.asarray(x), np.asarray(y)))
     n_ev = order.size
-    ps = np.asarray(y)[order].astype(np.int32) * 65536 + np.asarray(x)[order]
+    key = np.asarray(y).astype(np.int32)
+    key <<= 16
+    np.bitwise_or(key, np.asarray(x), out=key, casting="unsafe")  # coordinates < 65536
+    ps = key[order]
+    del key
     pp = np.asarray(p)[order]
-    ts = np.asarray(t_s, float)[order]
+    t_s = np.asarray(t_s)
+    pix_start = np.ones(n_ev, dtype=bool)
+    np.not_equal(ps[1:], ps[:-1], out=pix_start[1:])
     new_run = np.ones(n_ev, dtype=bool)
-    new_run[1:] = (ps[1:] != ps[:-1]) | (pp[1:] != pp[:-1])
+    np.not_equal(pp[1:], pp[:-1], out=new_run[1:])
+    new_run |= pix_start
     starts = np.flatnonzero(new_run).astype(np.int32)
     ends = np.append(starts[1:], n_ev) - 1
     length = ends - starts + 1
     run_pix, run_pol = ps[starts], pp[starts].astype(np.int8)
-    t_start, t_end = ts[starts], ts[ends]
+    t_start, t_end = t_s[order[starts]] * t_scale, t_s[order[ends]] * t_scale
     n_runs = starts.size
     on_then_off = np.zeros(n_runs, dtype=bool)
     on_then_off[:-1] = (run_pix[1:] == run_pix[:-1]) & (run_pol[:-1] == 1) & (run_pol[1:] == 0)
@@ -265,7 +282,7 @@ def _sorted_passes(
     first_of_pix[1:] = run_pix[1:] != run_pix[:-1]
     last_of_pix = np.ones(n_runs, dtype=bool)
     last_of_pix[:-1] = run_pix[:-1] != run_pix[1:]
-    t0, t1 = float(np.min(t_s)), float(np.max(t_s))
+    t0, t1 = float(t_s.min() * t_scale), float(t_s.max() * t_scale)
     early = first_of_pix & (t_start < t0 + edge_s)
     cut_start = early.copy()
     cut_start[1:] |= on_then_off[:-1] & early[:-1]
@@ -273,15 +290,17 @@ def _sorted_passes(
     cut_end = (run_pol == 1) & late
     open_end = late.copy()
     open_end[:-1] |= on_then_off[:-1] & late[1:]
-    pix_start = np.ones(n_ev, dtype=bool)
-    pix_start[1:] = ps[1:] != ps[:-1]
-    pix_id = np.cumsum(pix_start, dtype=np.int32) - 1
-    sgn = np.where(pp == 1, 1, -1).astype(np.int32)
-    cs = np.cumsum(sgn, dtype=np.int32)
+    pix_id = np.cumsum(pix_start, dtype=np.int32)
+    pix_id -= 1
+    sgn = np.where(pp == 1, np.int32(1), np.int32(-1))
+    net = np.cumsum(sgn, dtype=np.int32)
     first_ev = np.flatnonzero(pix_start)
-    net = cs - (cs[first_ev] - sgn[first_ev])[pix_id]
+    net -= (net[first_ev] - sgn[first_ev])[pix_id]  # the polarity sum within the pixel
+    del sgn
     last_ev = np.append(first_ev[1:], n_ev) - 1
-    run_of = np.cumsum(new_run, dtype=np.int32) - 1
+    # The runs of the pixels' first and last events (a first event starts a run).
+    first_run = np.searchsorted(starts, first_ev)
+    last_run = np.searchsorted(starts, last_ev, side="right") - 1
     return _SortedPasses(
         order,
         ps,
@@ -297,11 +316,11 @@ def _sorted_passes(
         first_ev,
         last_ev,
         net,
-        run_of,
-        cut_start[run_of[first_ev]],
-        open_end[run_of[last_ev]],
+        cut_start[first_run],
+        open_end[last_run],
         float(edge_s),
-        ts,
+        t_s,
+        float(t_scale),
     )
 
 
@@ -325,7 +344,7 @@ def pixel_passes(
     # Back to the events' order: each event's run and its index in the sorted order.
     rank = np.empty(n_ev, dtype=np.int32)
     rank[s.order] = np.arange(n_ev, dtype=np.int32)
-    run = s.run_of[rank]
+    run = (np.cumsum(s.new_run, dtype=np.int32) - 1)[rank]
     pid = s.pix_id[rank]
     return PixelPasses(
         pos=rank - s.starts[run],
@@ -359,7 +378,7 @@ class StreamLevels:
     """What `stream_levels_dead_time` found (arrays in the events' order).
 
     Attributes:
-        levels: `ladder_levels` (whole thresholds from the polarity sum; half-integer for
+        levels: `ladder_levels` as float32 (whole thresholds from the polarity sum; half-integer for
             pixels anchored at their last event).
         peak: `peak_on_events`.
         dead_time: thresholds each event's level stands for beyond ``levels`` because of
@@ -396,6 +415,7 @@ def stream_levels_dead_time(
     edge_s: float | None = None,
     hot_intervals_us: np.ndarray | None = None,
     ladder: bool = True,
+    t_scale: float = 1.0,
 ) -> StreamLevels:
     """`stream_levels` with the pixel's dead time in its levels.
 
@@ -411,14 +431,20 @@ def stream_levels_dead_time(
     ``use``, only if the hot pixels do not show it) and used if identified, else 0.
     ``ladder`` False: the dead time is measured (``refractory``) but not put into the
     levels (``dead_time`` None, ``refractory_used_s`` 0): the tracker's default, which
-    skips the ladder's dozen stream-long arrays (about 0.5 ms per output at 6 deg/s)."""
+    skips the ladder's dozen stream-long arrays (about 0.5 ms per output at 6 deg/s).
+    ``t_scale``: ``t_s * t_scale`` is in seconds (the tracker passes the integer
+    microseconds with 1e-6: a stream-long float copy less)."""
     n_ev = np.asarray(t_s).size
     if n_ev == 0:
         return StreamLevels(np.zeros(0), np.zeros(0, dtype=bool), None, None, 0.0)
-    s = _sorted_passes(t_s, x, y, p, edge_s)
+    s = _sorted_passes(t_s, x, y, p, edge_s, t_scale)
     offset = _level_offset(s.pixel_cut, s.pixel_open, s.net[s.last_ev])
-    levels = np.empty(n_ev)
-    levels[s.order] = s.net + offset[s.pix_id]
+    # float32: integers and halves (and NaN), exact; half the page faults of float64.
+    sorted_levels = offset.astype(np.float32)[s.pix_id]
+    sorted_levels += s.net
+    levels = np.empty(n_ev, dtype=np.float32)
+    levels[s.order] = sorted_levels
+    del sorted_levels
     peak = np.empty(n_ev, dtype=bool)
     peak[s.order] = _peaks_sorted(s.pix, s.pol)
     found: Refractory | None = None
@@ -434,7 +460,8 @@ def stream_levels_dead_time(
                 u = np.asarray(use, bool)
                 inner = inner[u[s.order[inner]] & u[s.order[inner - 1]]]
             inner = inner[:: max(1, -(-inner.size // REFRACTORY_INTERVALS))]
-            return np.rint((s.ts[inner] - s.ts[inner - 1]) * 1e6)
+            t_a, t_b = s.t_s[s.order[inner]] * s.t_scale, s.t_s[s.order[inner - 1]] * s.t_scale
+            return np.rint((t_a - t_b) * 1e6)
 
         found = refractory_from_stream(star_intervals_us, hot_intervals_us)
         tau = found.refractory_s if found.identified else 0.0
@@ -442,7 +469,7 @@ def stream_levels_dead_time(
         return StreamLevels(levels, peak, None, found, 0.0)
     inner = ~s.new_run  # the event's predecessor is in its run
     dt = np.zeros(n_ev)
-    dt[1:] = np.diff(s.ts)
+    dt[1:] = np.diff(s.t_s[s.order] * s.t_scale)
     gain = np.zeros(n_ev)
     gain[inner] = np.minimum(tau / np.maximum(dt[inner] - tau, 1e-12), DEAD_TIME_MAX_GAIN)
     gain[inner & (dt <= tau)] = DEAD_TIME_MAX_GAIN
@@ -733,15 +760,14 @@ def _balanced_centroids(
     """Per-label ON/OFF-balanced centroid, time and event count for labels 1..n."""
     out_px = np.zeros((n + 1, 2))
     out_t = np.zeros(n + 1)
-    parts = []
-    for pol in (1, 0):
-        m = p == pol
-        c = np.bincount(lab[m], minlength=n + 1).astype(float)
-        sx = np.bincount(lab[m], weights=x[m], minlength=n + 1)
-        sy = np.bincount(lab[m], weights=y[m], minlength=n + 1)
-        st = np.bincount(lab[m], weights=t[m], minlength=n + 1)
-        parts.append((c, sx, sy, st))
-    (c1, x1, y1, t1), (c0, x0, y0, t0) = parts
+    # One bincount per quantity over (label, ON) keys: the same sums, in the same order, as
+    # one per polarity (ON: p == 1; anything else counts as OFF, as before).
+    key = 2 * np.asarray(lab, np.int64) + (p == 1)
+    m2 = 2 * (n + 1)
+    c0, c1 = np.bincount(key, minlength=m2).astype(float).reshape(-1, 2).T  # OFF, ON
+    x0, x1 = np.bincount(key, weights=x, minlength=m2).reshape(-1, 2).T
+    y0, y1 = np.bincount(key, weights=y, minlength=m2).reshape(-1, 2).T
+    t0, t1 = np.bincount(key, weights=t, minlength=m2).reshape(-1, 2).T
     both = (c1 > 0) & (c0 > 0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mx = np.where(both, 0.5 * (x1 / c1 + x0 / c0), (x1 + x0) / (c1 + c0))
@@ -1356,14 +1382,17 @@ class StarTracker:
             # back (the second event model's stare: 100 arcsec).
             base = max(base, c.gate_spot_rms * self.spot_rms_px)
         gate = base * (3.0 if wide else 1.0) + 0.5 * streak
+        # The pixel offsets (raster order) from a star's rounded pixel that can be within
+        # the gate (the star is within half a pixel of it per axis): about 2/3 of the square.
         g = math.ceil(gate)
-        off = np.arange(-g, g + 1)
+        oy, ox = np.mgrid[-g : g + 1, -g : g + 1].reshape(2, -1)
+        near = np.maximum(np.abs(ox) - 0.5, 0) ** 2 + np.maximum(np.abs(oy) - 0.5, 0) ** 2
+        ox, oy = ox[near <= gate**2], oy[near <= gate**2]
         cx = np.rint(px[:, 0]).astype(np.int64)
         cy = np.rint(px[:, 1]).astype(np.int64)
-        X = cx[:, None, None] + off[None, None, :]
-        Y = cy[:, None, None] + off[None, :, None]
-        X, Y = np.broadcast_arrays(X, Y)
-        dist2 = (X - px[:, 0, None, None]) ** 2 + (Y - px[:, 1, None, None]) ** 2
+        X = cx[:, None] + ox[None, :]
+        Y = cy[:, None] + oy[None, :]
+        dist2 = (X - px[:, 0, None]) ** 2 + (Y - px[:, 1, None]) ** 2
         inside = (dist2 <= gate**2) & (X >= 0) & (X < cam.width) & (Y >= 0) & (Y < cam.height)
         # One label image per tracker, cleared after use (zeroing 0.3 M pixels per output
         # was a tenth of the CPU per output at 6 deg/s).
@@ -1371,7 +1400,7 @@ class StarTracker:
             self._label = np.zeros(cam.height * cam.width, dtype=np.int32)
         label = self._label
         stamped = (Y * cam.width + X)[inside]
-        star = np.broadcast_to(np.arange(1, rows.size + 1)[:, None, None], X.shape)
+        star = np.broadcast_to(np.arange(1, rows.size + 1)[:, None], X.shape)
         label[stamped] = star[inside]
         lab_all = label[events.y.astype(np.int32) * cam.width + events.x].astype(np.int64)
         label[stamped] = 0
@@ -1426,7 +1455,7 @@ class StarTracker:
         vel = vel_jac @ w
         star_of = _compact_labels(ok)
         li = star_of[lab]
-        lvl_g = levels[gi]
+        lvl_g = levels[gi].astype(float)  # (`stream_levels_dead_time` stores float32)
         use = (li >= 0) & (lvl_g > 0)
         # At most about fit_max_events per star (a deterministic, evenly spread subset: the
         # golden-ratio sequence of the event index): CPU per output stays bounded at fast
@@ -1583,7 +1612,7 @@ def run_event_tracker(
             levels = ladder_levels(events.p, passes)
     elif len(events) and (fits or "drop_peak" in (c.event_selection, c.acquisition_selection)):
         sl = stream_levels_dead_time(
-            events.t_s,
+            events.t_us,
             events.x,
             events.y,
             events.p,
@@ -1591,6 +1620,7 @@ def run_event_tracker(
             clean,
             hot_intervals_us=hot_dt,
             ladder=fits and c.dead_time_levels,
+            t_scale=1e-6,
         )
         tracker.refractory = sl.refractory
         if fits and c.dead_time_levels:
@@ -1605,7 +1635,7 @@ def run_event_tracker(
     if acquire is None:
         acquire = selected
     if levels is not None:
-        levels = np.where(clean, levels, np.nan)
+        levels[~clean] = np.nan  # in place: the stream-long array is this function's own
     if levels is None:
         events, acquire = _subset(events, selected), acquire[selected]
         selected = np.ones(len(events), dtype=bool)

@@ -65,6 +65,7 @@ CSV_COLUMNS = [
     "spots",
     "predicted",
     "false_alarm",
+    "fov_band_deg",
 ]
 """Leading columns fixed by issue 18, then diagnostics (`solution_row`)."""
 
@@ -120,6 +121,8 @@ def solution_row(image: str, sol: StarSolution) -> dict[str, Any]:
         row["distortion_k"] = sol.camera.k
         row["focal_px"] = sol.camera.f_px
         row["false_alarm"] = sol.false_alarm
+    if sol.band_deg is not None:  # the band whose database identified the stars
+        row["fov_band_deg"] = f"{sol.band_deg[0]:g}-{sol.band_deg[1]:g}"
     return row
 
 

@@ -93,6 +93,39 @@ def test_unknown_field_of_view_solves_the_same(real_images: dict[str, np.ndarray
     assert_matches_reference(sol, stem)
 
 
+def test_verified_field_between_the_searched_bands_is_kept(
+    real_images: dict[str, np.ndarray],
+) -> None:
+    """The centre 640x480 of a real 11.42 deg frame is a 7.1 deg field: between the two
+    bands searched (8-25 deg, then 3-6.5 deg), inside the searched range. The 8-25 deg
+    database identifies it (its patterns start at the short side of an 8 deg field, 6
+    deg); the verified solution was refused as "outside 8.0-25.0 deg" before (openstartracker
+    img2/img9 at 6.07 deg). Now it is kept, names the band that found it, and agrees with
+    the full frame's reference: same boresight and roll (a centred crop), 640/1024 of its
+    field of view."""
+    stem = IMAGES[0].stem
+    crop = real_images[stem][144:624, 192:832]
+    config = StarSolveConfig(fov_ranges_deg=((8.0, 25.0), (3.0, 6.5)), epoch_yr=2019.58)
+    sol = solve_image(crop, config)
+    assert sol.status == "solved", sol.reason
+    assert sol.R is not None and sol.camera is not None
+    assert sol.band_deg == (8.0, 25.0)
+    ref = reference().loc[stem]
+    ra, dec, roll = radec_roll_deg(sol.R)
+    # A third of the full frame's stars and baseline: boresight within 10 arcsec (the
+    # full frame's target), roll within 3x the full frame's 60 arcsec (a 0.6x baseline).
+    assert angle_between_arcsec(ra, dec, ref.ra_deg, ref.dec_deg) < 10.0
+    assert abs(wrap_deg(roll - ref.roll_deg)) * 3600 < 180.0
+    # tan-scaled crop of a distortion-fitted field: within 0.5 % (the fitted k differs).
+    expected = 2 * math.degrees(math.atan(math.tan(math.radians(ref.fov_deg) / 2) * 640 / 1024))
+    assert abs(sol.camera.fov_deg / expected - 1) < 5e-3
+    assert sol.false_alarm < config.max_false_alarm
+    # Outside the searched range it is still refused (a single band, the same database).
+    narrow = StarSolveConfig(fov_ranges_deg=((8.0, 25.0),), epoch_yr=2019.58)
+    refused = solve_image(crop, narrow)
+    assert refused.status == "no_solution" and "outside the searched" in refused.reason
+
+
 def partial_sky(img: np.ndarray, seed: int) -> np.ndarray:
     """A roof (bright, textured, below a slanted line) over the lower third and trees
     (textured discs) in the upper left corner, pasted over a real frame."""
