@@ -369,8 +369,16 @@ def track_live(
     recorder = RunRecorder(
         out / "run.rrd", head.calibration, None, cfg.recording, spawn=spawn, connect=connect
     )
+    # a step is what an online user needs per frame: the frontend, iSAM2, the trajectory row
+    # and the recording; the comparison estimators (config.compare) run once at the end
     step = FrameStep(
-        head.calibration, "online", cfg, recorder, rate_hz=head.rate_hz, root=head.root
+        head.calibration,
+        "online",
+        cfg,
+        recorder,
+        rate_hz=head.rate_hz,
+        root=head.root,
+        compare_at_end=True,
     )
     start = time.time()
     tracker = _Tracker(step=step, out=out, start_s=start)
@@ -416,7 +424,11 @@ def track_live(
         if notes:
             summary["notes"] = notes
         try:
+            t_end = time.perf_counter()
             finals = step.finish(head.root, len(table))
+            summary["end_of_run_ms"] = round(1e3 * (time.perf_counter() - t_end), 1)
+            if step.deferred:
+                summary["compared_at_end"] = list(step.deferred)
         except RunError as exc:
             _write_partial(out, step, table, head.root, summary, str(exc))
             raise
