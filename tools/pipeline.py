@@ -373,6 +373,8 @@ class FrameStep:
         self.deferred = [n for n in names if n != estimator] if compare_at_end else []
         """The estimators fed in `finish` (``compare_at_end``), not per frame."""
         self._inputs: list[FrameMeasurements] = []  # what the estimators were given, in order
+        self.finish_notes: list[str] = []
+        """What `finish` noted about the final estimates (run.yaml ``estimator_notes``)."""
         self.deferred_ms: dict[str, float] = {}
         """The deferred estimators' ``add()`` of every frame in `finish` [ms] (optimisation
         happens in their ``estimate()``)."""
@@ -468,6 +470,10 @@ class FrameStep:
         for name, est in self.estimators.items():
             try:
                 finals[name] = est.estimate()
+                note = getattr(est, "final_note", None)
+                if note:
+                    log.warning("%s estimator: %s", name, note)
+                    self.finish_notes.append(f"{name}: {note}")
             except Exception as exc:
                 text = str(exc) if isinstance(exc, BackendError) else exception_failure(name, exc)
                 if not isinstance(exc, BackendError):
@@ -578,6 +584,7 @@ def provenance(sequence_path: Path, estimator: str, frames: int, step: FrameStep
         "frames_with_pose": sum(m.pose is not None for m in step.results),
         "bad_frames": step.bad.count,
         "bad_frames_by_reason": step.bad.as_dict(),
+        **({"estimator_notes": list(step.finish_notes)} if step.finish_notes else {}),
         "command": " ".join(sys.argv),
     }
 
