@@ -3,8 +3,8 @@
 ``satpose track SEQ --live --out RUN`` watches a sequence folder that a recorder is still
 writing (`satpose.datasets.live.FolderSource`: when a frame counts as complete is defined
 there) and runs each frame it takes through the same per-frame step as ``satpose run``
-(`satpose.tools.pipeline.FrameStep`: frontend, iSAM2 and the comparison estimators, the
-recording). It never falls behind: after each frame it takes the newest complete frame and
+(`satpose.tools.pipeline.FrameStep`: frontend, iSAM2, the recording; the comparison
+estimators run once at the end, ``compare_at_end``). It never falls behind: after each frame it takes the newest complete frame and
 drops the older ones that arrived meanwhile (counted and named). Without ``--live`` it is
 ``satpose run --estimator online`` on a finished folder.
 
@@ -18,8 +18,9 @@ The run folder is written while tracking (docs/live.md):
 - ``live_frames.csv``: one row per frame of the recording, processed or dropped, appended as
   it happens (`LIVE_COLUMNS`).
 - ``run.rrd``: streamed (and to a viewer with ``--spawn``/``--connect``).
-- at the end, each atomically: every other file of a ``satpose run`` folder, timings.csv with
-  the latency columns.
+- at the end, each atomically: every other file of a ``satpose run`` folder (the offline and
+  Kalman estimates from every processed frame's measurements, fed to them then), timings.csv
+  with the latency columns.
 
 Latency of a frame: from its arrival (when it became complete on disk) to the end of its
 step (pose estimated, logged to Rerun and appended to trajectory.csv).
