@@ -4,8 +4,9 @@
 writing (`satpose.datasets.live.FolderSource`: when a frame counts as complete is defined
 there) and runs each frame it takes through the same per-frame step as ``satpose run``
 (`satpose.tools.pipeline.FrameStep`: frontend, iSAM2, the recording; the comparison
-estimators run once at the end, ``compare_at_end``). It never falls behind: after each frame it takes the newest complete frame and
-drops the older ones that arrived meanwhile (counted and named). Without ``--live`` it is
+estimators run once at the end, ``compare_at_end``). It never falls behind: after each
+frame it takes the newest complete frame and drops the older ones that arrived meanwhile
+(counted and named). Without ``--live`` it is
 ``satpose run --estimator online`` on a finished folder.
 
 The run folder is written while tracking (docs/live.md):
