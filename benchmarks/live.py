@@ -24,11 +24,11 @@ frames that follow a gap, and compares both on the same frames.
 
 Writes docs/results/live.md (docs/results/live_bag.md for ``--source bag``): frames processed
 and dropped, latency (arrival -> end of the frame's step) median and p95 over all processed
-frames and over those after the first pose (the start-up left out: the first frame's
-acquisition and the frames dropped meanwhile), the idle pickup delay, the step's CPU time
-over all processed frames and over those right after a gap, where the time of a frame goes
-(median per stage), and the load average of the machine before and after each run (also
-printed beside each result).
+frames and over the frames that arrived after the first pose (the start-up left out: the
+first frame's acquisition and the frames that arrived during it), the idle pickup delay,
+the step's CPU time over all processed frames and over those right after a gap, where the
+time of a frame goes (median per stage), and the load average of the machine before and
+after each run (also printed beside each result).
 """
 
 from __future__ import annotations
@@ -83,19 +83,23 @@ def ensure_sequence(data: Path, work: Path, frames: int | None) -> Path:
 
 
 def after_first_pose(result: LiveResult) -> dict[str, float | int | None]:
-    """The frames after the first processed one with a pose (the start-up left out: the
-    first frame's acquisition over the whole image and the frames dropped during it): how
-    many processed and dropped, latency median and p95 [ms]."""
-    with_pose = [m.frame for m in result.run.measurements if m.pose is not None]
-    if not with_pose:
+    """The frames that arrived after the tracker had its first pose (the start-up left out:
+    the first frame's acquisition over the whole image and the frames that arrived during
+    it): how many processed and dropped, latency median and p95 [ms]."""
+    with_pose = {m.frame for m in result.run.measurements if m.pose is not None}
+    t = result.frames
+    done = t[t["status"] == "processed"]
+    first = done[done["frame"].isin(with_pose)]
+    if first.empty:
         return {"processed": 0, "dropped": 0, "median": None, "p95": None}
-    t = result.frames[result.frames["frame"] > with_pose[0]]
-    done = t[t["status"] == "processed"]["latency_ms"].dropna().to_numpy(float)
+    ready = float(first["arrival_unix_s"].iloc[0] + first["latency_ms"].iloc[0] / 1e3)
+    later = t[t["arrival_unix_s"] > ready]
+    lat = later[later["status"] == "processed"]["latency_ms"].dropna().to_numpy(float)
     return {
-        "processed": int(done.size),
-        "dropped": int((t["status"] == "dropped").sum()),
-        "median": float(np.median(done)) if done.size else None,
-        "p95": float(np.percentile(done, 95)) if done.size else None,
+        "processed": int(lat.size),
+        "dropped": int((later["status"] == "dropped").sum()),
+        "median": float(np.median(lat)) if lat.size else None,
+        "p95": float(np.percentile(lat, 95)) if lat.size else None,
     }
 
 
@@ -389,10 +393,10 @@ numbers.
 
 Latency: from the frame's arrival (the newest modification time of its images and of
 frames.csv when its row was read; for a bag, its replay time) to the end of its step
-(frontend, iSAM2, run.rrd, the trajectory.csv row). "After the first pose": the frames after
-the first processed frame with a pose, which leaves out the start-up (the first frame's
-ring acquisition over the whole image, and the frames that arrived during it); the frames
-dropped there are those the tracker dropped while running. Pickup: arrival until the
+(frontend, iSAM2, run.rrd, the trajectory.csv row). "After the first pose": the frames that
+arrived after the step of the first frame with a pose had ended, which leaves out the
+start-up (the first frame's ring acquisition over the whole image, and the frames that
+arrived during it): what a user sees once tracking runs. Pickup: arrival until the
 tracker found the frame, over the frames that arrived while it was idle (a frame arriving
 during another frame's step waits for it). Step CPU: the process's CPU time during a frame's
 step (all threads), what the step costs without waiting for a core of a shared machine.
