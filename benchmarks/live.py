@@ -54,7 +54,7 @@ from satpose.datasets.sequence import load_sequence
 from satpose.frontend.pipeline import StereoFrontend
 from satpose.tools.evaluate import evaluate_run
 from satpose.tools.live import LiveResult, track_bag, track_folder
-from satpose.tools.pipeline import PipelineConfig, run_pipeline
+from satpose.tools.pipeline import PipelineConfig, RunError, run_pipeline
 
 OUT = {"folder": Path("docs/results/live.md"), "bag": Path("docs/results/live_bag.md")}
 VARIANTS = {
@@ -66,6 +66,26 @@ VARIANTS = {
 }
 """Re-acquisition after a gap: in the window predicted over it (default), or over the whole
 image (as before the window existed)."""
+
+
+COLUMNS = [
+    "rate (period)",
+    "re-acquisition after a gap",
+    "frames",
+    "processed",
+    "dropped",
+    "latency median [ms]",
+    "latency p95 [ms]",
+    "after the first pose: processed",
+    "dropped",
+    "latency median [ms]",
+    "latency p95 [ms]",
+    "pickup p95 (max) when idle [ms]",
+    "step CPU median [ms]",
+    "position error [cm]",
+    "load (1 min) before / after",
+]
+"""The main table's columns (one row per rate and re-acquisition)."""
 
 
 def ensure_sequence(data: Path, work: Path, frames: int | None) -> Path:
@@ -251,11 +271,25 @@ def main() -> None:
             for variant in variants:
                 label, config = VARIANTS[variant]
                 print(f"{args.source} at {rate:g} Hz, re-acquisition: {label}", flush=True)
-                if bag is not None:
-                    run = Path(tmp) / f"run-{rate:g}hz-{variant}"
-                    result, before, after = track_bag_at(bag, loaded.rate_hz, rate, run, config)
-                else:
-                    result, before, after = track_at(seq, rate, Path(tmp), config, f"-{variant}")
+                before = loadavg()
+                try:
+                    if bag is not None:
+                        run = Path(tmp) / f"run-{rate:g}hz-{variant}"
+                        result, before, after = track_bag_at(bag, loaded.rate_hz, rate, run, config)
+                    else:
+                        result, before, after = track_at(
+                            seq, rate, Path(tmp), config, f"-{variant}"
+                        )
+                except RunError as exc:  # reported in the table, not hidden
+                    after = loadavg()
+                    rows.append(
+                        f"| {rate:g} Hz ({1000 / rate:.0f} ms) | {label} | failed: {exc} |"
+                        + " |" * (len(COLUMNS) - 3)
+                        + f" {before.split(' / ')[0]} / {after.split(' / ')[0]} |"
+                    )
+                    loads.append(f"| {rate:g} Hz, {label} | {before} | {after} |")
+                    print(f"{rows[-1]}  load average before/after: {before} -> {after}")
+                    continue
                 s = result.summary()
                 lat, pick = s["latency_ms"], s["pickup_idle_ms"]
                 steady = after_first_pose(result)
@@ -320,23 +354,7 @@ def main() -> None:
     if args.rates != [2.0, 5.0, 10.0]:
         command += " --rates " + " ".join(f"{r:g}" for r in args.rates)
     machine = machine_summary(libraries=False)
-    columns = [
-        "rate (period)",
-        "re-acquisition after a gap",
-        "frames",
-        "processed",
-        "dropped",
-        "latency median [ms]",
-        "latency p95 [ms]",
-        "after the first pose: processed",
-        "dropped",
-        "latency median [ms]",
-        "latency p95 [ms]",
-        "pickup p95 (max) when idle [ms]",
-        "step CPU median [ms]",
-        "position error [cm]",
-        "load (1 min) before / after",
-    ]
+    columns = COLUMNS
     header = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns)
     if bag is not None:
         source = f"""written once as a ROS 2 bag (`write_bag`: raw images, header

@@ -446,13 +446,17 @@ class FrameStep:
         return m
 
     def causal(self) -> Estimate | None:
-        """The chosen estimator's causal estimate so far (None before it has one; offline has
-        none until `finish`)."""
+        """The chosen estimator's causal estimate so far (None before it has one, or after
+        its ``add()`` failed: that frame's failure note says why, and `finish` ends the run
+        with an error if it cannot recover; offline has none until `finish`)."""
         if self.estimator == "offline":
             return None
         try:
             return self.estimators[self.estimator].filtered()
         except BackendError:
+            return None
+        except Exception:  # e.g. iSAM2 threw in an update: the frame's note has it
+            log.debug("%s estimator: filtered() raised", self.estimator, exc_info=True)
             return None
 
     def finish(self, sequence_path: Path, total: int) -> Finals:
