@@ -196,6 +196,8 @@ class OnlineEstimator:
         self._staged_values = gtsam.Values()
         self._warm: gtsam.Values | None = None
         self._warm_estimate: Estimate | None = None
+        self.final_note: str | None = None
+        """Why `estimate` gave iSAM2's estimate without its final updates (None: it did not)."""
 
     def add(self, measurements: FrameMeasurements) -> None:
         """Add one frame and update iSAM2; records the frame's filtered estimate."""
@@ -348,19 +350,38 @@ class OnlineEstimator:
             twist_covariance=np.array([r.twist_cov for r in rows]),
         )
 
+    def _final_updates(self) -> None:
+        """Up to ``final_updates`` Gauss-Newton steps without new factors, relinearising every
+        variable, on a copy of iSAM2 that replaces it if they succeed. Relinearising a
+        variable that the windowed updates held can make the system indeterminate (seen with
+        a landmark of a live run whose dropped frames left it barely constrained); an update
+        that throws leaves iSAM2 unusable, so the copy is dropped and the estimate stays
+        iSAM2's after the last frame (`final_note` says why)."""
+        if self.config.final_updates == 0:
+            return
+        trial = gtsam.ISAM2(self.isam)  # a deep copy (Bayes tree, linearisation point)
+        try:
+            for _ in range(self.config.final_updates):
+                if trial.update().getVariablesRelinearized() == 0:
+                    break
+        except RuntimeError as exc:
+            lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+            why = " ".join(lines[:2]) or type(exc).__name__  # GTSAM's message and its key
+            self.final_note = f"final relinearisation skipped: {why}"
+            return
+        self.isam = trial
+
     def estimate(self) -> Estimate:
         """The current smoothed estimate of every frame: iSAM2's solution after up to
         ``final_updates`` Gauss-Newton steps without new factors (which also benefit the
         frames added later), relinearising every variable (also those outside
-        ``relinearize_window``)."""
+        ``relinearize_window``; skipped if that fails: `_final_updates`)."""
         self._require_start()
         if not self._released:
             assert self._warm_estimate is not None
             return self._warm_estimate
         if self._estimate is None:
-            for _ in range(self.config.final_updates):
-                if self.isam.update().getVariablesRelinearized() == 0:
-                    break
+            self._final_updates()
             values = self.isam.calculateBestEstimate()  # full back-substitution
             n = len(self.builder)
             self._estimate = Estimate(

@@ -75,7 +75,10 @@ def sample_image(
     Exact at the given positions: OpenCV 4.x ``remap`` with float maps rounds them to 1/32 px
     and 5.x does not, which moves sub-pixel edges by up to ~1/64 px between versions.
     """
-    img = np.asarray(image, dtype=np.float64)
+    # the taps are read from the image as it is and widen to float64 in the products below
+    # (exactly: float32 and integer pixels are float64 values); converting the whole image
+    # first cost a full-image copy per call (~6 MB at 1024x768, most of this function's time)
+    img = np.asarray(image)
     h, w = img.shape
     xs = np.asarray(x, dtype=np.float64)
     ys = np.asarray(y, dtype=np.float64)

@@ -3,9 +3,10 @@
 ``satpose track SEQ --live --out RUN`` watches a sequence folder that a recorder is still
 writing (`satpose.datasets.live.FolderSource`: when a frame counts as complete is defined
 there) and runs each frame it takes through the same per-frame step as ``satpose run``
-(`satpose.tools.pipeline.FrameStep`: frontend, iSAM2 and the comparison estimators, the
-recording). It never falls behind: after each frame it takes the newest complete frame and
-drops the older ones that arrived meanwhile (counted and named). Without ``--live`` it is
+(`satpose.tools.pipeline.FrameStep`: frontend, iSAM2, the recording; the comparison
+estimators run once at the end, ``compare_at_end``). It never falls behind: after each
+frame it takes the newest complete frame and drops the older ones that arrived meanwhile
+(counted and named). Without ``--live`` it is
 ``satpose run --estimator online`` on a finished folder.
 
 The run folder is written while tracking (docs/live.md):
@@ -18,8 +19,9 @@ The run folder is written while tracking (docs/live.md):
 - ``live_frames.csv``: one row per frame of the recording, processed or dropped, appended as
   it happens (`LIVE_COLUMNS`).
 - ``run.rrd``: streamed (and to a viewer with ``--spawn``/``--connect``).
-- at the end, each atomically: every other file of a ``satpose run`` folder, timings.csv with
-  the latency columns.
+- at the end, each atomically: every other file of a ``satpose run`` folder (the offline and
+  Kalman estimates from every processed frame's measurements, fed to them then), timings.csv
+  with the latency columns.
 
 Latency of a frame: from its arrival (when it became complete on disk) to the end of its
 step (pose estimated, logged to Rerun and appended to trajectory.csv).
@@ -369,8 +371,16 @@ def track_live(
     recorder = RunRecorder(
         out / "run.rrd", head.calibration, None, cfg.recording, spawn=spawn, connect=connect
     )
+    # a step is what an online user needs per frame: the frontend, iSAM2, the trajectory row
+    # and the recording; the comparison estimators (config.compare) run once at the end
     step = FrameStep(
-        head.calibration, "online", cfg, recorder, rate_hz=head.rate_hz, root=head.root
+        head.calibration,
+        "online",
+        cfg,
+        recorder,
+        rate_hz=head.rate_hz,
+        root=head.root,
+        compare_at_end=True,
     )
     start = time.time()
     tracker = _Tracker(step=step, out=out, start_s=start)
@@ -416,7 +426,11 @@ def track_live(
         if notes:
             summary["notes"] = notes
         try:
+            t_end = time.perf_counter()
             finals = step.finish(head.root, len(table))
+            summary["end_of_run_ms"] = round(1e3 * (time.perf_counter() - t_end), 1)
+            if step.deferred:
+                summary["compared_at_end"] = list(step.deferred)
         except RunError as exc:
             _write_partial(out, step, table, head.root, summary, str(exc))
             raise

@@ -339,6 +339,12 @@ class FrameStep:
         rate_hz: the sequence's nominal frame rate (spin rates per frame in the recording).
         truth: ground truth for the recording, if the sequence has it (never estimated from).
         root: the sequence folder (bad frames' files are named relative to it).
+        compare_at_end: run the comparison estimators (``config.compare``) once in `finish`,
+            on the measurements of every frame in order, instead of per frame (``satpose
+            track --live``: a frame's step is then the frontend and the chosen estimator
+            only). Their final estimates are the same either way (each sees the same
+            measurements in the same order); the recording then has their trajectories at
+            the end only (`RunRecorder.log_final`), not frame by frame.
     """
 
     def __init__(
@@ -351,6 +357,7 @@ class FrameStep:
         rate_hz: float,
         truth: GroundTruth | None = None,
         root: Path | None = None,
+        compare_at_end: bool = False,
     ) -> None:
         self.estimator = estimator
         self.config = config
@@ -363,6 +370,14 @@ class FrameStep:
             name: make_estimator(name, calibration, config.backend, hook=self._hook)
             for name in names
         }
+        self.deferred = [n for n in names if n != estimator] if compare_at_end else []
+        """The estimators fed in `finish` (``compare_at_end``), not per frame."""
+        self._inputs: list[FrameMeasurements] = []  # what the estimators were given, in order
+        self.finish_notes: list[str] = []
+        """What `finish` noted about the final estimates (run.yaml ``estimator_notes``)."""
+        self.deferred_ms: dict[str, float] = {}
+        """The deferred estimators' ``add()`` of every frame in `finish` [ms] (optimisation
+        happens in their ``estimate()``)."""
         self.frontend = StereoFrontend(calibration, config.frontend)
         self.results: list[FrameMeasurements] = []
         self.timing_rows: list[dict[str, Any]] = []
@@ -409,7 +424,10 @@ class FrameStep:
         }
         self._steps.clear()
         notes: list[str] = []
+        self._inputs.append(m)
         for name, est in self.estimators.items():
+            if name in self.deferred:
+                continue
             t2 = time.perf_counter()
             _, why = guarded(f"backend_{name}", index, partial(est.add, m))
             notes += [why] if why else []
@@ -428,13 +446,17 @@ class FrameStep:
         return m
 
     def causal(self) -> Estimate | None:
-        """The chosen estimator's causal estimate so far (None before it has one; offline has
-        none until `finish`)."""
+        """The chosen estimator's causal estimate so far (None before it has one, or after
+        its ``add()`` failed: that frame's failure note says why, and `finish` ends the run
+        with an error if it cannot recover; offline has none until `finish`)."""
         if self.estimator == "offline":
             return None
         try:
             return self.estimators[self.estimator].filtered()
         except BackendError:
+            return None
+        except Exception:  # e.g. iSAM2 threw in an update: the frame's note has it
+            log.debug("%s estimator: filtered() raised", self.estimator, exc_info=True)
             return None
 
     def finish(self, sequence_path: Path, total: int) -> Finals:
@@ -448,9 +470,14 @@ class FrameStep:
             RunError: the chosen estimator has no estimate (e.g. the ring was never found).
         """
         finals = {}
+        self._feed_deferred()
         for name, est in self.estimators.items():
             try:
                 finals[name] = est.estimate()
+                note = getattr(est, "final_note", None)
+                if note:
+                    log.warning("%s estimator: %s", name, note)
+                    self.finish_notes.append(f"{name}: {note}")
             except Exception as exc:
                 text = str(exc) if isinstance(exc, BackendError) else exception_failure(name, exc)
                 if not isinstance(exc, BackendError):
@@ -466,9 +493,14 @@ class FrameStep:
             causal, why = guarded(f"backend_{self.estimator}", -1, est.filtered)
             if causal is None:
                 raise RunError(f"{sequence_path}: no filtered estimate: {why}")
-        for name, label in (("offline", "smoothed"), ("online", "isam2_smoothed")):
+        logged = [("offline", "smoothed"), ("online", "isam2_smoothed")]
+        if "kalman" in self.deferred and "kalman" in finals:  # its causal track, at the end
+            logged.append(("kalman", "kalman"))
+        for name, label in logged:
             if name in finals:
                 e = finals[name]
+                if label == "kalman":
+                    e = self.estimators["kalman"].filtered()
                 _, why = guarded(
                     "recording",
                     -1,
@@ -486,6 +518,25 @@ class FrameStep:
                     log.warning("run.rrd: the %s trajectory is missing: %s", label, why)
         return Finals(estimates=finals, main=main, causal=causal)
 
+    def _feed_deferred(self) -> None:
+        """Give the deferred estimators every frame's measurements, in order (as `__call__`
+        gives them to the others: an exception in ``add()`` is that frame's failure note),
+        once; their time [ms] in `deferred_ms`."""
+        for name in self.deferred:
+            if name in self.deferred_ms:
+                continue
+            est = self.estimators[name]
+            t0 = time.perf_counter()
+            for k, m in enumerate(self._inputs):
+                _, why = guarded(f"backend_{name}", m.frame, partial(est.add, m))
+                if why:
+                    self.results[k] = replace(
+                        self.results[k], failures=(*self.results[k].failures, why)
+                    )
+                    if m.frame not in self.bad.frames:  # counted once, as in `__call__`
+                        self.bad.note(m.frame, (why,), ())
+            self.deferred_ms[name] = 1e3 * (time.perf_counter() - t0)
+
     def _record(
         self,
         index: int,
@@ -501,7 +552,7 @@ class FrameStep:
         spin: dict[str, float] = {}
         for name, key in (("kalman", "kalman"), ("online", "isam2")):
             est = self.estimators.get(name)
-            if est is None:
+            if est is None or name in self.deferred:
                 continue
             try:
                 f = est.filtered()
@@ -537,6 +588,7 @@ def provenance(sequence_path: Path, estimator: str, frames: int, step: FrameStep
         "frames_with_pose": sum(m.pose is not None for m in step.results),
         "bad_frames": step.bad.count,
         "bad_frames_by_reason": step.bad.as_dict(),
+        **({"estimator_notes": list(step.finish_notes)} if step.finish_notes else {}),
         "command": " ".join(sys.argv),
     }
 

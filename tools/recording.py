@@ -27,8 +27,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
-from typing import Literal
 
+import cv2
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
@@ -138,6 +138,19 @@ def _circle_points(T: Rigid3, radius: float, n: int = 96) -> np.ndarray:
 def _ellipse_strip(e: Ellipse, n: int = 96) -> np.ndarray:
     p = e.points(n)
     return np.vstack([p, p[:1]])
+
+
+def jpeg_image(img: np.ndarray, quality: int) -> rr.EncodedImage:
+    """A camera image as stored (grey or BGR, 8 or 16 bit) as a JPEG for the recording.
+
+    Encoded by OpenCV (libjpeg-turbo) from the BGR array as it is: 1.2 ms for a 1024x768
+    colour image, against 5.1 ms for ``rr.Image(...).compress`` (which converts to RGB and
+    encodes with Pillow) on the same machine, quiet (docs/live.md)."""
+    img8 = img if img.dtype == np.uint8 else (img // 257).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", img8, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError(f"JPEG encoding failed for an image of shape {img.shape}")
+    return rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg")
 
 
 DEFAULT_VIEWER = "rerun+http://127.0.0.1:9876/proxy"
@@ -251,14 +264,7 @@ class RunRecorder:
         rec.set_time("time", duration=float(m.t_s))
         if self.config.images:
             for cam, img in images.items():
-                color: Literal["BGR", "L"] = "BGR" if img.ndim == 3 else "L"
-                img8 = img if img.dtype == np.uint8 else (img // 257).astype(np.uint8)
-                rec.log(
-                    f"{CAMERA[cam]}/image",
-                    rr.Image(img8, color_model=color).compress(
-                        jpeg_quality=self.config.jpeg_quality
-                    ),
-                )
+                rec.log(f"{CAMERA[cam]}/image", jpeg_image(img, self.config.jpeg_quality))
         self._log_detections(m)
         if m.ring is not None:
             self._radius = m.ring.radius_m

@@ -6,6 +6,7 @@ import signal
 import socket
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -120,6 +121,33 @@ def test_every_frame_is_processed_at_a_low_rate(
         timings.columns
     )
     assert (seq / RECORDING_DONE).is_file()
+
+
+def test_comparison_estimators_run_once_at_the_end(live_run: tuple[Path, Path]) -> None:
+    """A live step is the frontend, iSAM2 and the recording; the offline smoother and the
+    Kalman filter get every frame's measurements at the end (their files are written, and
+    equal `satpose run`'s: test_live_equals_run_online_on_the_same_frames)."""
+    _, run = live_run
+    timings = pd.read_csv(run / "timings.csv")
+    assert "backend_online" in timings.columns
+    assert not {"backend_offline", "backend_kalman"} & set(timings.columns)
+    live = yaml.safe_load((run / "run.yaml").read_text())["live"]
+    assert live["compared_at_end"] == ["offline", "kalman"]
+    assert live["end_of_run_ms"] > 0
+    n = live["processed"]
+    for name in ("offline", "kalman"):
+        assert len(read_estimate_npz(run / f"estimate_{name}.npz")) == n
+    # run.rrd: the Kalman filter's causal trajectory and spin rates, logged at the end (a live
+    # run has no truth, so no error series)
+    store = RrdReader(str(run / "run.rrd")).store()
+    entities = Counter(c.entity_path.lstrip("/") for c in store.stream())
+    assert "world/trajectory/kalman" in entities
+    rows = sum(
+        c.num_rows
+        for c in store.stream()
+        if c.entity_path.lstrip("/") == "plots/spin/kalman" and not c.is_static
+    )
+    assert rows == n
 
 
 def _only(seq: Path, frames: list[int], out: Path) -> Path:

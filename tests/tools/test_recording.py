@@ -131,3 +131,26 @@ def test_final_series_lie_on_both_timelines(tmp_path: Path, make_sequence) -> No
     np.testing.assert_allclose(
         [t.total_seconds() for t in times], 0.5 * np.arange(FRAMES), atol=1e-9
     )
+
+
+def test_jpeg_image_holds_the_image() -> None:
+    """The logged JPEG decodes to the camera image (BGR and grey, 8 and 16 bit) within what
+    JPEG at quality 95 loses on a smooth image."""
+    import cv2
+
+    from satpose.tools.recording import jpeg_image
+
+    y, x = np.mgrid[0:96, 0:128]
+    grey = (100 + 60 * np.sin(x / 9.0) * np.cos(y / 7.0)).astype(np.uint8)
+    bgr = np.dstack([grey, (grey // 2).astype(np.uint8), (255 - grey).astype(np.uint8)])
+    for img, flag in ((bgr, cv2.IMREAD_COLOR), (grey, cv2.IMREAD_GRAYSCALE)):
+        for stored in (img, img.astype(np.uint16) * 257):
+            logged = jpeg_image(stored, 95)
+            assert logged.media_type is not None
+            assert logged.media_type.as_arrow_array().to_pylist() == ["image/jpeg"]
+            assert logged.blob is not None
+            data = np.asarray(logged.blob.as_arrow_array().to_pylist()[0], dtype=np.uint8)
+            back = cv2.imdecode(data, flag)
+            assert back.shape == img.shape
+            err = np.abs(back.astype(int) - img.astype(int))
+            assert err.mean() < 2.0 and err.max() <= 20  # JPEG q95 on a smooth image
