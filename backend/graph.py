@@ -113,6 +113,12 @@ class GraphBuilder:
     def __len__(self) -> int:
         return len(self.frames)
 
+    def forget_landmark(self, track_id: int) -> None:
+        """Take a landmark out of the graph's bookkeeping (its variable and factors were
+        dropped): its next sighting starts it afresh as a first sighting."""
+        self.landmarks.discard(track_id)
+        self._sightings.pop(track_id, None)
+
     def set_hint(
         self,
         i: int,

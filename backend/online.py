@@ -42,6 +42,7 @@ from satpose.backend.keys import (
     POSE_CHAR,
     RADIUS_CHAR,
     TWIST_CHAR,
+    L,
     V,
     X,
 )
@@ -141,6 +142,9 @@ class _Filtered:
     twist_cov: np.ndarray
 
 
+_VARIABLE_DIM = {POSE_CHAR: 6, TWIST_CHAR: 6, LANDMARK_CHAR: 3, RADIUS_CHAR: 1, BIAS_CHAR: 1}
+
+
 class OnlineEstimator:
     """iSAM2 tracker: one incremental update per frame."""
 
@@ -179,6 +183,7 @@ class OnlineEstimator:
         params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = config.relinearize_skip
         params.setFactorization("CHOLESKY" if config.factorization == "cholesky" else "QR")
+        self._params = params
         self.isam = gtsam.ISAM2(params)
         self._filtered: dict[int, _Filtered] = {}
         # relinearisation window: held keys, and landmarks/radii by the state they entered at
@@ -226,13 +231,19 @@ class OnlineEstimator:
                 factors, values = update.factors, update.values
             newest = update.created[-1] if update.created else len(self.builder) - 1
             hold = self._hold(values, newest, first)
-            result = self.isam.update(factors, values, [], self._ordering(factors, newest), hold)
-            relinearized = result.getVariablesRelinearized()
-            held = None if self.config.relinearize_window is None else self._held
-            for _ in range(self.config.extra_updates):
-                relinearized += self.isam.update(
-                    gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, held
-                ).getVariablesRelinearized()
+            stored = self.isam.getFactorsUnsafe().size()
+            try:
+                result = self.isam.update(
+                    factors, values, [], self._ordering(factors, newest), hold
+                )
+                relinearized = result.getVariablesRelinearized()
+                held = None if self.config.relinearize_window is None else self._held
+                for _ in range(self.config.extra_updates):
+                    relinearized += self.isam.update(
+                        gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, held
+                    ).getVariablesRelinearized()
+            except RuntimeError as exc:
+                relinearized = self._restart(exc, factors, values, stored, notes)
             t2 = time.perf_counter()
             timings["update"] = 1e3 * (t2 - t1)
             timings["update_cpu"] = 1e3 * (time.process_time() - p1)
@@ -263,6 +274,84 @@ class OnlineEstimator:
                     notes=tuple(notes),
                 )
             )
+
+    def _restart(
+        self,
+        exc: RuntimeError,
+        factors: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stored: int,
+        notes: list[str],
+    ) -> int:
+        """Recover from an update that threw (it leaves iSAM2's Bayes tree unusable).
+
+        Seen in a live run with dropped frames: a landmark whose linearisation point had run
+        away along its viewing ray (the relinearisation window's held variables) ended up
+        behind every camera that saw it; its projection factors then have no gradient and
+        the system is indeterminate. Such *dead* landmarks (every factor's Jacobian on them
+        zero at iSAM2's linearisation point) are dropped with their factors and start again
+        at their next sighting; the rest of the graph, this frame's factors included, is
+        solved again (Levenberg-Marquardt from the linearisation point) and iSAM2 restarts
+        there. The frame's notes say so. Raises the original error if nothing was dead, the
+        anchor was, or the restart fails too."""
+        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+        why = " ".join(lines[:2]) or type(exc).__name__
+        old = self.isam.getFactorsUnsafe()
+        graph = gtsam.NonlinearFactorGraph()
+        for n in range(old.size()):
+            if old.exists(n):
+                graph.push_back(old.at(n))
+        if old.size() == stored:  # the failed update had not stored its factors
+            graph.push_back(factors)
+        theta = gtsam.Values(self.isam.getLinearizationPoint())
+        missing = gtsam.Values(values)
+        for key in values.keys():
+            if theta.exists(key):
+                missing.erase(key)
+        theta.insert(missing)
+        live: set[int] = set()
+        seen: set[int] = set()
+        for n in range(graph.size()):
+            f = graph.at(n)
+            for k in f.keys():
+                if chr(gtsam.Symbol(k).chr()) != LANDMARK_CHAR or k in live:
+                    continue
+                seen.add(k)
+                A = f.linearize(theta).jacobian()[0]  # columns in the factor's key order
+                offset = 0
+                for kk in f.keys():
+                    d = _VARIABLE_DIM[chr(gtsam.Symbol(kk).chr())]
+                    if kk == k and np.any(A[:, offset : offset + d]):
+                        live.add(k)
+                    offset += d
+        dead = seen - live
+        anchor = self.builder.anchor
+        if not dead or (anchor is not None and L(anchor) in dead):
+            raise exc
+        kept = gtsam.NonlinearFactorGraph()
+        for n in range(graph.size()):
+            if not set(graph.at(n).keys()) & dead:
+                kept.push_back(graph.at(n))
+        for k in dead:
+            theta.erase(k)
+            self._entered.pop(k, None)
+            self.builder.forget_landmark(gtsam.Symbol(k).index())
+        if set(self._held_keys) & dead:
+            keep = [k for k in self._held_keys if k not in dead]
+            thr = [self._thresholds[chr(gtsam.Symbol(k).chr())] for k in keep]
+            self._held_keys = keep
+            self._held_starts = list(np.cumsum([0] + [len(t) for t in thr[:-1]])) if thr else []
+            self._held_thresholds = np.concatenate(thr) if thr else np.zeros(0)
+        theta = levenberg_marquardt(kept, theta, 100, 1e-10, 1e-12).values
+        self.isam = gtsam.ISAM2(self._params)
+        relinearized = int(self.isam.update(kept, theta).getVariablesRelinearized())
+        names = ", ".join(sorted(gtsam.DefaultKeyFormatter(k) for k in dead))
+        notes.append(
+            f"iSAM2: {why}; landmark(s) {names} behind every camera that saw them were "
+            "dropped (they restart at their next sighting) and iSAM2 restarted from a batch "
+            "solve of the rest"
+        )
+        return relinearized
 
     def _ordering(self, factors: gtsam.NonlinearFactorGraph, newest: int) -> gtsam.KeyGroupMap:
         """Elimination constraints: the newest state last (group 2), the keys of the new factors
