@@ -135,7 +135,7 @@ def _handler(args: argparse.Namespace) -> None:
         target=args.target,
         overwrite=args.overwrite,
         png_compression=args.png_compression,
-        workers=args.workers,
+        **({} if args.workers is None else {"workers": args.workers}),
     )
     truth = None
     if args.truth is not None:
@@ -303,7 +303,10 @@ def register(subparsers: Any) -> None:
         "docs/results/import.md)",
     )
     o.add_argument(
-        "--workers", type=positive_int, default=1, help="threads writing PNGs (default 1)"
+        "--workers",
+        type=positive_int,
+        default=None,
+        help="threads writing PNGs (default: the machine's cores, at most 4)",
     )
     p.add_argument("--name", help="sequence name (default: the source's name)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
