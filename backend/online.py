@@ -142,7 +142,10 @@ class _Filtered:
     twist_cov: np.ndarray
 
 
-_VARIABLE_DIM = {POSE_CHAR: 6, TWIST_CHAR: 6, LANDMARK_CHAR: 3, RADIUS_CHAR: 1, BIAS_CHAR: 1}
+def _gtsam_message(exc: RuntimeError) -> str:
+    """GTSAM's message in one line: its first two lines (what and near which key)."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    return " ".join(lines[:2]) or type(exc).__name__
 
 
 class OnlineEstimator:
@@ -294,8 +297,7 @@ class OnlineEstimator:
         solved again (Levenberg-Marquardt from the linearisation point) and iSAM2 restarts
         there. The frame's notes say so. Raises the original error if nothing was dead, the
         anchor was, or the restart fails too."""
-        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-        why = " ".join(lines[:2]) or type(exc).__name__
+        why = _gtsam_message(exc)
         old = self.isam.getFactorsUnsafe()
         graph = gtsam.NonlinearFactorGraph()
         for n in range(old.size()):
@@ -320,7 +322,7 @@ class OnlineEstimator:
                 A = f.linearize(theta).jacobian()[0]  # columns in the factor's key order
                 offset = 0
                 for kk in f.keys():
-                    d = _VARIABLE_DIM[chr(gtsam.Symbol(kk).chr())]
+                    d = len(self._thresholds[chr(gtsam.Symbol(kk).chr())])  # its dimension
                     if kk == k and np.any(A[:, offset : offset + d]):
                         live.add(k)
                     offset += d
@@ -338,10 +340,8 @@ class OnlineEstimator:
             self.builder.forget_landmark(gtsam.Symbol(k).index())
         if set(self._held_keys) & dead:
             keep = [k for k in self._held_keys if k not in dead]
-            thr = [self._thresholds[chr(gtsam.Symbol(k).chr())] for k in keep]
-            self._held_keys = keep
-            self._held_starts = list(np.cumsum([0] + [len(t) for t in thr[:-1]])) if thr else []
-            self._held_thresholds = np.concatenate(thr) if thr else np.zeros(0)
+            self._held_keys, self._held_starts, self._held_thresholds = [], [], np.zeros(0)
+            self._add_held(keep)
         theta = levenberg_marquardt(kept, theta, 100, 1e-10, 1e-12).values
         self.isam = gtsam.ISAM2(self._params)
         relinearized = int(self.isam.update(kept, theta).getVariablesRelinearized())
@@ -389,11 +389,7 @@ class OnlineEstimator:
             new.append(key)
             del self._entered[key]
         if new:
-            thr = [self._thresholds[chr(gtsam.Symbol(k).chr())] for k in new]
-            size = len(self._held_thresholds)
-            self._held_starts += list(size + np.cumsum([0] + [len(t) for t in thr[:-1]]))
-            self._held_thresholds = np.concatenate([self._held_thresholds, *thr])
-            self._held_keys += new
+            self._add_held(new)
         self._held = gtsam.KeyList()
         if self._held_keys:
             delta = np.abs(self.isam.getDelta().vector(self._held_keys))
@@ -402,6 +398,14 @@ class OnlineEstimator:
                 if r <= self.config.held_relinearize_factor:
                     self._held.push_back(key)
         return self._held
+
+    def _add_held(self, keys: list[int]) -> None:
+        """Append keys to the held keys, their thresholds to the concatenated vector."""
+        thr = [self._thresholds[chr(gtsam.Symbol(k).chr())] for k in keys]
+        size = len(self._held_thresholds)
+        self._held_starts += list(size + np.cumsum([0] + [len(t) for t in thr[:-1]]))
+        self._held_thresholds = np.concatenate([self._held_thresholds, *thr])
+        self._held_keys += keys
 
     def _warm_up(self, created: list[int]) -> None:
         initial = gtsam.Values(self._staged_values)
@@ -454,9 +458,7 @@ class OnlineEstimator:
                 if trial.update().getVariablesRelinearized() == 0:
                     break
         except RuntimeError as exc:
-            lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-            why = " ".join(lines[:2]) or type(exc).__name__  # GTSAM's message and its key
-            self.final_note = f"final relinearisation skipped: {why}"
+            self.final_note = f"final relinearisation skipped: {_gtsam_message(exc)}"
             return
         self.isam = trial
 

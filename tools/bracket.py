@@ -164,6 +164,16 @@ def draw_overlay(
     return out
 
 
+def _truth_pose(seq: Sequence, frame: int) -> Rigid3 | None:
+    """groundtruth.csv's pose of a frame, for the overlay (None: no truth for it)."""
+    if seq.truth is None:
+        return None
+    try:
+        return seq.truth.pose(seq.truth.row_of_frame(frame))
+    except KeyError:
+        return None
+
+
 def _error(est: Rigid3, true: Rigid3) -> tuple[float, float]:
     return (
         float(np.linalg.norm(est.t - true.t)),
@@ -248,12 +258,7 @@ def run_bracket(
             else:
                 try:
                     prep = und(image)
-                    truth = None
-                    if seq.truth is not None:
-                        try:
-                            truth = seq.truth.pose(seq.truth.row_of_frame(fr.index))
-                        except KeyError:
-                            truth = None
+                    truth = _truth_pose(seq, fr.index)
                     result: BracketResult | None = None
                     if prep.problem is not None:
                         det = StrutDetection(
@@ -389,12 +394,7 @@ def run_bracket(
                     reason,
                 ]
                 if k in grey_of:
-                    truth = None
-                    if seq.truth is not None:
-                        try:
-                            truth = seq.truth.pose(seq.truth.row_of_frame(fr.index))
-                        except KeyError:
-                            truth = None
+                    truth = _truth_pose(seq, fr.index)
                     img = draw_overlay(grey_of[k], det, result, geo, K, truth)
                     cv2.imwrite(str(stage / "overlay" / f"{fr.index:06d}.png"), img)
             per_frame = [(m.t_s, m.pose.left_cam_from_target) for m in frames if m.pose is not None]

@@ -46,6 +46,11 @@ SourceKind = Literal["rosbag1", "rosbag2", "euroc", "video", "folder"]
 IMPORT_TOOL = "satpose-import"
 
 
+def default_png_workers() -> int:
+    """PNG-writing threads of an import: the machine's cores, at most 4."""
+    return max(1, min(4, os.cpu_count() or 1))
+
+
 @dataclass(frozen=True, kw_only=True)
 class ImportOptions:
     """How to read a recording (every field has the CLI option of the same name).
@@ -84,18 +89,13 @@ class ImportOptions:
     target: Path | None = None
     overwrite: bool = False
     png_compression: int | None = None
-    workers: int = field(default_factory=lambda: default_png_workers())
+    workers: int = field(default_factory=default_png_workers)
 
     def __post_init__(self) -> None:
         if not self.pair_tolerance_s >= 0:
             raise RecordingError(Path("--pair-tolerance-ms"), None, "must be >= 0")
         if not 0.0 <= self.max_unpaired <= 1.0:
             raise RecordingError(Path("--max-unpaired"), None, "must be in [0, 1]")
-
-
-def default_png_workers() -> int:
-    """PNG-writing threads of an import: the machine's cores, at most 4."""
-    return max(1, min(4, os.cpu_count() or 1))
 
 
 @dataclass
