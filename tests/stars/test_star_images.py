@@ -8,6 +8,7 @@ attitude)."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -19,6 +20,7 @@ from satpose.datasets.geometry import rotvec_to_matrix
 from satpose.frontend.star_images import (
     ImageStars,
     SkyCamera,
+    StarExtractionConfig,
     StarSolution,
     StarSolveConfig,
     _chance_match,
@@ -237,6 +239,29 @@ def test_saturated_star_centroid() -> None:
     for k, (x, y, _) in enumerate(truth):
         assert np.hypot(*(stars.px[k] - [x, y])) < 0.05
     assert stars.sigma_px[0] > stars.sigma_px[1]
+
+
+def test_bright_star_with_a_halo_is_kept_a_lit_disc_is_not() -> None:
+    """A bright star whose halo (Moffat wings, as in a stretched JPEG) reaches far above
+    threshold makes a blob over `max_pixels`; its flux stays in a peaked core, so it is kept,
+    ordered first, centroid within 0.05 px (symmetric profile). A uniformly lit disc of
+    about three times that area (a lit surface) is dropped; so is the halo star when the
+    compactness test is off (the old rule: every blob over `max_pixels` dropped)."""
+    rng = np.random.default_rng(5)
+    h, w = 256, 320
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = rng.normal(20, 2, (h, w))
+    x0, y0 = 80.4, 120.3
+    img += 20000 * (1 + ((xx - x0) ** 2 + (yy - y0) ** 2) / 1.5**2) ** -2.0  # Moffat, beta 2
+    img += 400 * (np.hypot(xx - 240, yy - 128) <= 20)  # a lit disc
+    img += 3000 * np.exp(-((xx - 160) ** 2 + (yy - 40) ** 2) / 2.88)  # a small star
+    c = StarExtractionConfig()
+    stars = extract_stars(img.astype(np.float32), c)
+    assert len(stars) == 2, stars.px
+    assert np.hypot(*(stars.px[0] - [x0, y0])) < 0.05
+    assert np.hypot(*(stars.px[1] - [160, 40])) < 0.05
+    strict = extract_stars(img.astype(np.float32), replace(c, max_spread=1e-3))
+    assert len(strict) == 1 and np.hypot(*(strict.px[0] - [160, 40])) < 0.05
 
 
 # ---- refusals ----------------------------------------------------------------------------------
