@@ -30,10 +30,13 @@ Camera frame OpenCV; attitude ``inertial_from_camera`` (ICRS). Never imports gts
 from __future__ import annotations
 
 import functools
+import logging
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Literal
 
 import cv2
@@ -56,6 +59,7 @@ from satpose.frontend.star_sensor import (
 )
 
 ARCSEC = math.pi / (180 * 3600)
+_log = logging.getLogger(__name__)
 
 
 class StarTrackerError(SatposeError):
@@ -839,14 +843,58 @@ class SolverCatalogue:
     row_of: dict[int, int]
 
 
+CACHE_ENV = "SATPOSE_CACHE_DIR"
+"""Environment variable naming the folder of saved tetra3rs databases (`database_cache_dir`);
+set to an empty string, nothing is saved or read."""
+
+
+def database_cache_dir() -> Path | None:
+    """Where solver databases are saved: ``$SATPOSE_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/satpose``, else ``~/.cache/satpose``, then ``tetra3rs-<version>``
+    (a database belongs to the tetra3rs release and its bundled catalogue); None when
+    ``$SATPOSE_CACHE_DIR`` is set empty."""
+    from importlib.metadata import version
+
+    root = os.environ.get(CACHE_ENV)
+    if root == "":
+        return None
+    if root is None:
+        xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+        root = str(Path(xdg) / "satpose")
+    return Path(root) / f"tetra3rs-{version('tetra3rs')}"
+
+
 @functools.lru_cache(maxsize=4)
 def solver_database(min_fov_deg: float, max_fov_deg: float, epoch_yr: float) -> object:
-    """A tetra3rs database from its bundled Gaia catalogue (cached per process)."""
+    """A tetra3rs database from its bundled Gaia catalogue: kept per process, and saved in
+    `database_cache_dir` so that later runs load it (0.05 s) instead of building it (12 s
+    for a 6-31 deg pattern range, about 2 min for 2-11 deg). A saved file that does not
+    load is rebuilt with a warning naming it; a folder that cannot be written only costs
+    the saving (warned)."""
     import tetra3rs
 
-    return tetra3rs.SolverDatabase.generate_from_gaia(
+    folder = database_cache_dir()
+    path = None
+    if folder is not None:
+        path = folder / f"gaia-{min_fov_deg:g}-{max_fov_deg:g}deg-epoch{epoch_yr:g}.t3db"
+        if path.is_file():
+            try:
+                return tetra3rs.SolverDatabase.load_from_file(str(path))
+            except Exception as exc:  # any unreadable file: rebuild it
+                _log.warning("%s: saved star database unreadable (%s); rebuilding it", path, exc)
+    db = tetra3rs.SolverDatabase.generate_from_gaia(
         max_fov_deg=max_fov_deg, min_fov_deg=min_fov_deg, epoch_proper_motion_year=epoch_yr
     )
+    if path is not None:
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            db.save_to_file(str(tmp))
+            os.replace(tmp, path)
+        except Exception as exc:  # a read-only or full disk: carry on without saving
+            _log.warning("%s: star database not saved (%s)", path, exc)
+            tmp.unlink(missing_ok=True)
+    return db
 
 
 @functools.lru_cache(maxsize=4)

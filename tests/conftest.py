@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -126,3 +128,17 @@ def board_sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
     args = ["--frames", str(BOARD_VIEWS), "--size", size, "--spp", "4"]
     assert main(["render", "calibration", "--out", str(out), *args]) == 0
     return out
+
+
+@pytest.fixture(scope="session", autouse=True)
+def star_database_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Saved star databases go to a folder of the test session, not the user's cache."""
+    from satpose.frontend.stars import CACHE_ENV
+
+    old = os.environ.get(CACHE_ENV)
+    os.environ[CACHE_ENV] = str(tmp_path_factory.mktemp("star-databases"))
+    yield
+    if old is None:
+        os.environ.pop(CACHE_ENV, None)
+    else:
+        os.environ[CACHE_ENV] = old
