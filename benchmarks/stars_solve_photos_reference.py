@@ -4,10 +4,19 @@ Two solvers that share nothing with satpose (neither its catalogue, nor its extr
 its pattern search):
 
 - **astrometry.net** (Debian's ``astrometry.net`` 0.93 with the Tycho-2 index files
-  ``astrometry-data-tycho2-10-19``, 60'-2000' quads): ``solve-field`` on every image (its
+  ``astrometry-data-tycho2-07`` to ``-10-19``, 22'-2000' quads; the rows of earlier runs
+  say which were installed then: the header's command lines): ``solve-field`` on every image (its
   own source extraction, quad hashing and TAN-SIP fit); the boresight, roll and field of
   view are read back through its ``wcs-xy2rd`` at the image centre, 10 px below it and at
   the left and right edges of the middle row, so the numbers include its SIP distortion.
+  It runs once per distortion order (``--tweak-order``; `ASTROMETRY_ORDERS`), each a solver
+  row of its own: ``astrometry.net`` (order 2, solve-field's default), ``astrometry.net
+  TAN`` (order 1: no distortion) and ``astrometry.net SIP-3`` (order 3). No order suits
+  every picture: order 2 has no cubic term, so a lens's radial distortion leaks into its
+  scale (virgo.jpg: 20.28 deg at order 2, 20.43 at 3, 20.46 at 4), and with a handful of
+  matched stars orders 2-3 overfit (openstartracker's img9.png, 5 matches: roll -143.99
+  deg at order 2, -144.28 at order 1). The spread between the rows is the reference's own
+  uncertainty.
 - **cedar-solve** 0.5.1 (ESA tetra3's fork, its bundled Hipparcos database for 10-30 deg
   fields): ``solve_from_image`` as in benchmarks/stars_solve_reference.py.
 
@@ -16,7 +25,8 @@ no-star pictures (a solution there would mean the picture does show stars). One 
 image and solver; the versions and commands go into the file's ``#`` header. satpose does not
 depend on either: run this under the cedar-solve venv, with astrometry.net installed::
 
-    apt-get install astrometry.net astrometry-data-tycho2-10-19
+    apt-get install astrometry.net astrometry-data-tycho2-07 astrometry-data-tycho2-08 \\
+        astrometry-data-tycho2-09 astrometry-data-tycho2-10-19
     python3 -m venv /work/cedar-venv && /work/cedar-venv/bin/pip install 'numpy<2' \\
         cedar-solve==0.5.1
     /work/cedar-venv/bin/python benchmarks/stars_solve_photos_reference.py --data DATA \\
@@ -115,15 +125,22 @@ def position_angle_deg(ra1: float, dec1: float, ra2: float, dec2: float) -> floa
     return math.degrees(math.atan2(y, x))
 
 
+ASTROMETRY_ORDERS = {"astrometry.net": 2, "astrometry.net TAN": 1, "astrometry.net SIP-3": 3}
+"""Solver name of each ``solve-field --tweak-order`` run."""
+SOLVERS = (*ASTROMETRY_ORDERS, "cedar-solve")
+
+
 def solve_astrometry_net(
-    image: Path, width: int, height: int, fov_deg: float | None, cpulimit: int
+    image: Path, width: int, height: int, fov_deg: float | None, cpulimit: int, order: int
 ) -> dict[str, object]:
-    """``solve-field`` on one image; the boresight, roll and field of view of its WCS."""
+    """``solve-field`` on one image with SIP distortion of polynomial ``order`` (1: plain
+    TAN); the boresight, roll and field of view of its WCS."""
     work = Path(tempfile.mkdtemp(prefix="anet-"))
     try:
         cmd = ["solve-field", "--no-plots", "--overwrite", "--dir", str(work)]
         cmd += ["--cpulimit", str(cpulimit), "--new-fits", "none", "--rdls", "none"]
         cmd += ["--index-xyls", "none", "--match", "none", "--solved", "none", "--crpix-center"]
+        cmd += ["--tweak-order", str(order)]
         if fov_deg:
             cmd += ["--scale-units", "degwidth"]
             cmd += ["--scale-low", f"{0.7 * fov_deg:g}", "--scale-high", f"{1.3 * fov_deg:g}"]
@@ -147,7 +164,7 @@ def solve_astrometry_net(
             "roll_deg": f"{position_angle_deg(ra, dec, ra_d, dec_d):.6f}",
             "fov_deg": f"{fov:.6f}",
             "matches": fits_table_rows(corr) if corr.is_file() else "",
-            "detail": "TAN-SIP (solve-field)",
+            "detail": "TAN (solve-field)" if order == 1 else f"TAN-SIP {order} (solve-field)",
         }
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -177,7 +194,19 @@ def solve_cedar(t3: object, image: Path, fov_deg: float | None) -> dict[str, obj
     }
 
 
-def write(args: argparse.Namespace, rows: list[dict[str, str]], anet: str, props: dict) -> None:
+def installed_indexes() -> str:
+    """The Debian astrometry.net index packages installed (``dpkg-query``), e.g.
+    ``astrometry-data-tycho2-07-littleendian, ...``."""
+    out = subprocess.run(
+        ["dpkg-query", "-W", "-f", "${Package} ${Status}\\n", "astrometry-data-*"],
+        capture_output=True,
+        text=True,
+    ).stdout
+    names = [ln.split()[0] for ln in out.splitlines() if ln.endswith("install ok installed")]
+    return ", ".join(sorted(names)) or "none found by dpkg-query"
+
+
+def write(args: argparse.Namespace, rows: list[dict[str, str]], anet: str) -> None:
     """Write the rows so far (a temporary file, then a rename)."""
     args.out.parent.mkdir(parents=True, exist_ok=True)
     cols = ["source", "file", "solver", "status", "ra_deg", "dec_deg", "roll_deg", "fov_deg"]
@@ -185,21 +214,19 @@ def write(args: argparse.Namespace, rows: list[dict[str, str]], anet: str, props
     tmp = args.out.with_suffix(".tmp")
     with tmp.open("w", newline="", encoding="utf-8") as fh:
         fh.write(
-            f"# astrometry.net: {anet or 'solve-field'} with index files "
-            "astrometry-data-tycho2-10-19 (Debian); solve-field --cpulimit "
+            f"# astrometry.net: {anet or 'solve-field'} with the index files of the run (each "
+            "command line below); solve-field --tweak-order 2 (astrometry.net), "
+            "1 (astrometry.net TAN), 3 (astrometry.net SIP-3) --cpulimit "
             f"{args.cpulimit} (no-star pictures {args.no_star_cpulimit}) --crpix-center, "
             "--scale-units degwidth 0.7-1.3 x fov_deg when "
             "images.csv states a pinhole field, else no scale hint\n"
-            f"# cedar-solve {version('cedar-solve')} (numpy {__import__('numpy').__version__}), "
-            f"bundled database (catalogue {props['star_catalog']}, fov {props['min_fov']}-"
-            f"{props['max_fov']} deg, epoch {props['epoch_proper_motion']}): "
-            "solve_from_image(gray, fov_estimate=fov_deg, fov_max_error=0.15 fov_deg) or no "
-            "estimate\n"
+            f"# {args.cedar_header}\n"
             "# command: python benchmarks/stars_solve_photos_reference.py --data DATA --out "
             f"{args.out}"
             + (f" --sources {' '.join(args.sources)}" if args.sources else "")
+            + (f" --solvers {' '.join(repr(v) for v in args.solvers)}" if args.solvers else "")
             + (" --keep" if args.keep else "")
-            + f"; written {datetime.date.today().isoformat()}\n"
+            + f"; index files {args.indexes}; written {datetime.date.today().isoformat()}\n"
             + "".join(f"# earlier: {line}\n" for line in args.earlier)
             + "# roll_deg: position angle of image-down at the centre, north through east "
             "(satpose; cedar: 180 - Roll)\n"
@@ -223,16 +250,30 @@ def main() -> None:
     ap.add_argument(
         "--keep",
         action="store_true",
-        help="keep --out's rows of the images not run now (a run of some --sources only)",
+        help="keep --out's rows of the images and solvers not run now (a run of some "
+        "--sources or --solvers only)",
     )
+    ap.add_argument("--solvers", nargs="*", choices=SOLVERS, help="only these (default: all)")
     args = ap.parse_args()
+    solvers = args.solvers or list(SOLVERS)
 
-    import tetra3  # cedar-solve's module name
     from PIL import Image
 
-    t3 = tetra3.Tetra3()
-    props = t3.database_properties
+    t3 = None
+    args.cedar_header = "cedar-solve: not run"
+    if "cedar-solve" in solvers:
+        import tetra3  # cedar-solve's module name
+
+        t3 = tetra3.Tetra3()
+        p = t3.database_properties
+        args.cedar_header = (
+            f"cedar-solve {version('cedar-solve')} (numpy {__import__('numpy').__version__}), "
+            f"bundled database (catalogue {p['star_catalog']}, fov {p['min_fov']}-"
+            f"{p['max_fov']} deg, epoch {p['epoch_proper_motion']}): solve_from_image(gray, "
+            "fov_estimate=fov_deg, fov_max_error=0.15 fov_deg) or no estimate"
+        )
     anet = subprocess.run(["solve-field", "--version"], capture_output=True, text=True)
+    args.indexes = installed_indexes()
     items = [i for i in read_images(args.images) if not args.sources or i["source"] in args.sources]
     run_now = {(i["source"], i["file"]) for i in items}
     rows = []
@@ -242,9 +283,15 @@ def main() -> None:
             for tag in ("# command: ", "# earlier: "):
                 if line.startswith(tag):
                     args.earlier.append(line[len(tag) :])
+            if line.startswith("# cedar-solve ") and t3 is None:
+                args.cedar_header = line[2:]
         with args.out.open(encoding="utf-8") as fh:
             old = csv.DictReader(line for line in fh if not line.startswith("#"))
-            rows = [r for r in old if (r["source"], r["file"]) not in run_now]
+            rows = [
+                r
+                for r in old
+                if (r["source"], r["file"]) not in run_now or r["solver"] not in solvers
+            ]
     for item in items:
         path = args.data / item["source"] / item["file"]
         if not path.is_file():
@@ -255,21 +302,30 @@ def main() -> None:
         fov = float(item["fov_deg"]) if item["fov_deg"] else None
         # A fisheye's "field of view" is no pinhole scale: search every scale then.
         hint = fov if fov and fov < 90 else None
-        for solver in ("astrometry.net", "cedar-solve"):
-            if solver == "astrometry.net":
+        first_order: dict[str, object] | None = None
+        # The default order first: the others change only the final fit of the stars it
+        # identified, so they are run only where it solved.
+        for solver in sorted(solvers, key=lambda v: v != "astrometry.net"):
+            if solver in ASTROMETRY_ORDERS and first_order and first_order["status"] != "solved":
+                res = {"status": "no_solution", "detail": "not run: order 2 found no solution"}
+            elif solver in ASTROMETRY_ORDERS:
                 limit = args.no_star_cpulimit if item["kind"] == "no_star" else args.cpulimit
-                res = solve_astrometry_net(path, width, height, hint, limit)
+                res = solve_astrometry_net(
+                    path, width, height, hint, limit, ASTROMETRY_ORDERS[solver]
+                )
+                first_order = first_order or (res if solver == "astrometry.net" else None)
             else:
+                assert t3 is not None
                 res = solve_cedar(t3, path, hint)
             row = {"source": item["source"], "file": item["file"], "solver": solver}
             row.update({k: "" for k in ("ra_deg", "dec_deg", "roll_deg", "fov_deg", "matches")})
             row.update({k: str(v) for k, v in res.items()})
             rows.append(row)
             print(f"{item['source']}/{item['file']} {solver}: {row['status']}", file=sys.stderr)
-        write(args, rows, anet.stdout.strip(), props)
+        write(args, rows, anet.stdout.strip())
     order = {(i["source"], i["file"]): k for k, i in enumerate(read_images(args.images))}
     rows.sort(key=lambda r: (order.get((r["source"], r["file"]), len(order)), r["solver"]))
-    write(args, rows, anet.stdout.strip(), props)
+    write(args, rows, anet.stdout.strip())
     solved = sum(r["status"] == "solved" for r in rows)
     print(f"{solved}/{len(rows)} solver runs solved; wrote {args.out}")
 
