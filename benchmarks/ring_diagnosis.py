@@ -257,6 +257,7 @@ def markdown(rows: list[dict[str, Any]], args: argparse.Namespace, minutes: floa
         f"--size {args.size[0]}x{args.size[1]} --spp {args.spp} --label {args.label}"
         + (" --outline" if args.outline else "")
         + (" --largest" if args.largest else "")
+        + (f" --face-rise {args.face_rise}" if args.face_rise is not None else "")
     )
     lines = [
         f"# What the frontend measures as the ring: tuning seeds ({args.label})",
