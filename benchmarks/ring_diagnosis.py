@@ -2,6 +2,8 @@
 
     python benchmarks/ring_diagnosis.py --seeds 0-7 --label before --largest  # the old rule
     python benchmarks/ring_diagnosis.py --seeds 0-7 --label after              # the default
+    python benchmarks/ring_diagnosis.py --seeds 0-7 --label face_after_0-7 --face-rise 0.3
+                                                    # the rim-face check (docs/frontend.md)
 
 Runs the frontend alone (no smoother) on each tuning seed's render and, per frame, names the
 ring curve the reported ellipses follow: the candidate curve of the true target (projected
@@ -255,6 +257,7 @@ def markdown(rows: list[dict[str, Any]], args: argparse.Namespace, minutes: floa
         f"--size {args.size[0]}x{args.size[1]} --spp {args.spp} --label {args.label}"
         + (" --outline" if args.outline else "")
         + (" --largest" if args.largest else "")
+        + (f" --face-rise {args.face_rise}" if args.face_rise is not None else "")
     )
     lines = [
         f"# What the frontend measures as the ring: tuning seeds ({args.label})",
@@ -346,6 +349,12 @@ def main() -> None:
         action="store_true",
         help="the largest consistent pair wins (stereo_ring.behind_sigma: None, the old rule)",
     )
+    parser.add_argument(
+        "--face-rise",
+        type=float,
+        default=None,
+        help="ring.face_rise (the rim-face check; default: the config's)",
+    )
     parser.add_argument("--label", default="current", help="names the output page")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
@@ -354,6 +363,8 @@ def main() -> None:
         cfg = replace(cfg, outline=replace(cfg.outline, enabled=True))
     if args.largest:
         cfg = replace(cfg, stereo_ring=replace(cfg.stereo_ring, behind_sigma=None))
+    if args.face_rise is not None:
+        cfg = replace(cfg, ring=replace(cfg.ring, face_rise=args.face_rise))
     start = time.perf_counter()
     rows = [r for seed in _seeds(args.seeds) for r in diagnose(seed, args, cfg)]
     minutes = (time.perf_counter() - start) / 60.0

@@ -108,6 +108,14 @@ class RingConfig:
             prediction's error grows with the time it bridges.
         gap_max_area: a window larger than this fraction of the image is not worth a first
             try: the whole image is searched at once.
+        face_rise: the rim-face check (`face_rise`): an edge point whose inner side rises
+            toward it by more than this fraction of its own contrast above the median rise
+            of all the fit's points (and by more than ``outlier_sigma`` robust standard
+            deviations of the rise: noisy edges) bounds a band beside the rim (a sunlit wall face
+            brighter than the rim, or a shadow darker than it), not the rim's face, and is
+            left out of the fit. None: no check.
+        face_depth_px: how far inside each edge point the rim face is sampled (every px
+            from 2 px on): past the widest band beside the rim that the check should see.
     """
 
     track_points: int = 16
@@ -138,6 +146,14 @@ class RingConfig:
     gap_window: bool = True
     gap_margin_per_frame: float = 0.05
     gap_max_area: float = 0.5
+    face_rise: float | None = None
+    face_depth_px: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.face_rise is not None and not self.face_rise > 0:
+            raise ValueError(f"ring.face_rise must be > 0 or null, got {self.face_rise}")
+        if not self.face_depth_px >= 2.0:
+            raise ValueError(f"ring.face_depth_px must be >= 2, got {self.face_depth_px}")
 
 
 @dataclass
@@ -161,6 +177,36 @@ def inside_dominance(
     both = np.concatenate([p - band_px * nrm, p + band_px * nrm]).astype(np.float32)
     vals = sample_image(image_s, both[:, 0], both[:, 1], "linear")
     return float(np.mean(polarity * (vals[:n] - vals[n:]) > 0.01))
+
+
+def face_rise(
+    image_s: np.ndarray, points: np.ndarray, normals: np.ndarray, depth_px: float
+) -> np.ndarray:
+    """Per edge point, how much the image rises from the face inside it toward the edge,
+    in units of the edge's own contrast (N,): ``max_t s (I(-1) - I(t)) / |I(-1) - I(+1)|``
+    over ``t = -2, -3, ..., -depth_px``, with ``I(t)`` sampled ``t`` px along the outward
+    ``normals`` (N, 2) from ``points`` (N, 2) in the smoothed image and ``s`` the edge's sign
+    (+1: brighter inside).
+
+    At the rim's own edge the face inside is uniform: about 0. Where a band lies between
+    the rim and the edge found (the wall's outer face lit brighter than the rim, with an edge
+    of the tracked polarity against the panel beyond it), the band is the edge's inner side
+    and the rim face beyond it differs: up to about 1 once ``depth_px`` reaches past the band.
+    Along a thin rim band (narrower than ``depth_px``) every point rises alike; the caller
+    compares each point with the median over the curve, not with 0."""
+    nrm = np.asarray(normals, float)
+    pts = np.asarray(points, float)
+    k = pts.shape[0]
+    depths = np.arange(2.0, max(depth_px, 2.0) + 1e-9, 1.0)
+    offsets = np.concatenate([[-1.0, 1.0], -depths])
+    taps = np.concatenate([pts + t * nrm for t in offsets])
+    v = sample_image(image_s, taps[:, 0], taps[:, 1], "linear").astype(np.float64)
+    v = v.reshape(len(offsets), k)
+    inner, outer, face = v[0], v[1], v[2:]
+    contrast = inner - outer
+    sign = np.where(contrast >= 0, 1.0, -1.0)
+    rise = np.max(sign * (inner - face), axis=0)
+    return rise / np.maximum(np.abs(contrast), 1e-3)
 
 
 class RingTracker:
@@ -526,7 +572,15 @@ class RingTracker:
             pts = edges_of_polarity(
                 image_s, e.points(n), e.normals(n), polarity, half, cfg.edges, raw=raw
             )
-            P = pts[np.isfinite(pts[:, 0])]
+            found = np.isfinite(pts[:, 0])
+            if cfg.face_rise is not None and found.any():
+                rise = face_rise(image_s, pts[found], e.normals(n)[found], cfg.face_depth_px)
+                # a band beside the rim: its points rise above the curve's own level, by
+                # more than ``face_rise`` and than the rise's own scatter (noisy edges)
+                level = float(np.median(rise))
+                spread = 1.4826 * float(np.median(np.abs(rise - level)))
+                found[found] = rise <= level + max(cfg.face_rise, cfg.outlier_sigma * spread)
+            P = pts[found]
             if P.shape[0] < cfg.min_edge_fraction * n:
                 return None
             ell = e
