@@ -598,6 +598,11 @@ class SequenceLabeller:
         i = max(i for i, f in enumerate(ks) if f < k)
         return predict(tr.fit.poses[i], tr.fit.twists[i], self.t_s[k] - self.t_s[ks[i]])
 
+    def agree(self, a: Rigid3, b: Rigid3) -> bool:
+        """Whether two poses of the target are the same answer: within the rival distance
+        (``rival_deg`` in attitude and ``rival_rel`` x range at the centre)."""
+        return not self._disagree(a, b)
+
     def _disagree(self, a: Rigid3, b: Rigid3 | None) -> bool:
         """Whether ``b`` is another answer than ``a``: farther than the rival distance."""
         if b is None:

@@ -323,3 +323,24 @@ def test_late_rival_reaches_back_to_the_first_frame() -> None:
     for k, d in enumerate(reached):
         if d.candidate is not None:
             assert d.pose is not None and _angle_deg(d.pose, truth[k]) < 1.0, k
+
+
+def test_agree_is_the_rival_distance() -> None:
+    """`SequenceLabeller.agree` (used to refuse a reported pose whose per-frame refit slid to
+    another root): same answer within 8 deg and 5 % of the range, another beyond either
+    (exact geometry: 0.1 deg and 2 mm either side of the limits)."""
+    T = view(V_SKEW, 20.0, 0.0, 1.5, 0.5)
+    lab = SequenceLabeller(V_SKEW.mean(axis=0))
+    rng = float(np.linalg.norm(T.apply(V_SKEW.mean(axis=0)[None])[0]))
+
+    def turned(deg: float) -> Rigid3:
+        # about the camera axis through the centre's image: the centre stays put
+        c = T.apply(V_SKEW.mean(axis=0)[None])[0]
+        R = rotvec_to_matrix(np.array([0.0, 0.0, math.radians(deg)]))
+        return Rigid3(R=R @ T.R, t=R @ (T.t - c) + c)
+
+    def moved(m: float) -> Rigid3:
+        return Rigid3(R=T.R, t=T.t + np.array([m, 0.0, 0.0]))
+
+    assert lab.agree(T, turned(7.9)) and not lab.agree(T, turned(8.1))
+    assert lab.agree(T, moved(0.05 * rng - 0.002)) and not lab.agree(T, moved(0.05 * rng + 0.002))
