@@ -21,7 +21,11 @@ on each, and writes docs/results/bracket_family_{tuning,validation}.md:
 - bias: the mean signed error (camera frame) next to the RMS error;
 - the same for the *online* decision (`per_frame_online.tum`);
 - how many frames the decision over frames reports on the member's exact images
-  (`decidable_noise_free`): where those do not decide, no detector with this rule can;
+  (`decidable_noise_free`): where those do not decide, no detector with this rule can. The
+  fraction under 1.5 m is stated per split as the bound on what any detector measuring
+  these quantities can report, with the undecided frames' second poses (`nearest_rival_offsets`:
+  how far they put ``p1, p2`` and the stub ends from the truth's) against the noise
+  measured on the split;
 - the refusal reasons.
 
 Validation seeds are only scored: no parameter was changed because of them. Usage::
