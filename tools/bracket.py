@@ -366,6 +366,16 @@ def run_bracket(
                 # maximum of the likelihood in the chosen labelling's basin
                 start = d.pose if d.pose is not None else chosen.refined
                 pose, cov, _ = refine_partial_pose(start, chosen.model)
+                if d.pose is not None and not labeller.agree(d.pose, pose):
+                    # the frame's own likelihood has no maximum near the decided track (the
+                    # true pair of P3P roots turned complex in noise) and the refit slid to
+                    # another root: that pose is another answer than the one decided
+                    # (tuning seed 8, frame 0: track 12 deg, the frame's maximum 23 deg off)
+                    why = (
+                        "the frame's own best pose departs from the decided track "
+                        f"(decided with log-likelihood ratio {d.log_lr:.1f})"
+                    )
+                    return replace(det, observation=None, struts=None, result=None), None, why
                 res = BracketResult(pose=pose, covariance=cov, selected_by="sequence")
                 return chosen.detection, res, ""
 

@@ -58,10 +58,33 @@ def ambiguous_noise_free(T: Rigid3, V: np.ndarray, K: np.ndarray, fraction: floa
     face and its visible stub ends within the detector's 3 sigma (``3 px + 5 %`` of the stub)
     of the exact ones (`noise_free_hypotheses` without the strut widths). Such a frame is
     ambiguous whatever a single-frame detector does."""
+    return math.isfinite(nearest_rival_offsets(T, V, K, fraction)[0])
+
+
+def nearest_rival_offsets(
+    T: Rigid3, V: np.ndarray, K: np.ndarray, fraction: float
+) -> tuple[float, float, float]:
+    """How far the exact image's second poses (the rivals of `ambiguous_noise_free`, each at
+    its own maximum of the likelihood, ``refined``) put what the detector measures from
+    where the truth puts it: for the rival whose visible stub ends lie nearest the true ones,
+    (the larger of its two stub ends' reprojection distances [px], the larger of ``p1``'s and
+    ``p2``'s [px], its attitude difference from the truth [deg]); NaNs without a rival. With
+    a whole triangle (fraction 1) the "stub ends" are the apex."""
     hyps = noise_free_hypotheses(
         T, BracketGeometry(vertices_m=V), K, fraction, StrutDetectorConfig(strut_radius_m=None)
     )
-    return bool(_rivals(T, [h.pose for h in hyps], V))
+    pts = measured_points_b(V, fraction)  # P1, P2, end on P1P5, end on P2P5
+    true_px = project(T, pts, K)
+    best = (math.nan, math.nan, math.nan)
+    for h in hyps:
+        if not _rivals(T, [h.pose], V):
+            continue
+        d = np.linalg.norm(project(h.refined, pts, K) - true_px, axis=1)
+        end_px, vertex_px = float(d[2:].max()), float(d[:2].max())
+        if not end_px >= best[0]:  # also replaces the NaN start
+            rot = math.degrees(float(np.linalg.norm(matrix_to_rotvec(h.refined.R @ T.R.T))))
+            best = (end_px, vertex_px, rot)
+    return best
 
 
 def decidable_noise_free(
@@ -132,7 +155,8 @@ def score_sequence(
 
     Returns:
         ``rows`` (per frame: ``seed`` (the folder's name), ``frame``, ``range_m``, ``T``
-        (truth), ``ambiguous_exact``, then ``reason`` or ``e_rot_deg``, ``e_pos_m``,
+        (truth), ``ambiguous_exact``, ``rival_end_px``, ``rival_vertex_px``,
+        ``rival_deg`` (`nearest_rival_offsets`), then ``reason`` or ``e_rot_deg``, ``e_pos_m``,
         ``mislabelled``, ``resid``, ``dtheta``, ``dend``), ``fraction``, ``V`` (P1, P2, P5),
         ``K``, ``cpu_s``, ``summary`` (`run_bracket`'s) and ``exact_wrong``; the rows of
         the paper's view also hold ``decidable_exact``, ``decidable_exact_online``,
@@ -177,12 +201,16 @@ def score_sequence(
         r = points[fr.index]
         est = poses.get(round(fr.t_s, 6))
         est_on = online.get(round(fr.t_s, 6))
+        rival = nearest_rival_offsets(T, V, K, frac)
         row: dict[str, Any] = {
             "seed": Path(seq_path).name,
             "frame": fr.index,
             "range_m": rng_m,
             "T": T,
-            "ambiguous_exact": ambiguous_noise_free(T, V, K, frac),
+            "ambiguous_exact": math.isfinite(rival[0]),
+            "rival_end_px": rival[0],
+            "rival_vertex_px": rival[1],
+            "rival_deg": rival[2],
             "decidable_exact": exact_off[k],
             "decidable_exact_online": exact_on[k],
             "exact_lr": exact_lr[k],

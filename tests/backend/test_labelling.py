@@ -272,3 +272,75 @@ def test_rendered_seed2_true_track_kept_and_nothing_mislabelled() -> None:
             assert _angle_deg(d.pose, truth[d.frame]) < 20.0, (d.frame, d.log_lr)
     # where the wrong root is more than 20 deg off (frames 9-11), nothing is reported
     assert all(d.candidate is None for d in lab.decide()[9:])
+
+
+def _seed0_exact(n: int) -> tuple[list[float], list[Rigid3], np.ndarray, np.ndarray, float, float]:
+    """Tuning seed 0 of the bracket family, first ``n`` frames: times, truth, bracket, K,
+    visible fraction and strut radius (tests/data/bracket_labelling/seed0_truth.json)."""
+    path = Path(__file__).parents[1] / "data" / "bracket_labelling" / "seed0_truth.json"
+    data = json.loads(path.read_text())
+    frames = data["frames"][:n]
+    return (
+        [float(f["t_s"]) for f in frames],
+        [Rigid3(R=np.array(f["R"]), t=np.array(f["t"])) for f in frames],
+        np.array(data["vertices"]),
+        np.array(data["K"]),
+        float(data["fraction"]),
+        0.5 * float(data["strut_width_m"]),
+    )
+
+
+def test_late_rival_reaches_back_to_the_first_frame() -> None:
+    """Tuning seed 0's exact images (noise-free quantities and widths): a neighbouring P3P
+    root lies 2-8 deg from the truth in frames 0-4 (there the true track carries it) and
+    parts from frame 5 on. Forward only, its track starts at frame 5 and is charged a miss
+    for each of frames 0-4, so the truth is decided against a mutilated copy (log-likelihood
+    ratio >= 6.9). Reaching back, the root's track explains frames 0-8 from frame 0 and is
+    within the noise of the truth's: frames 5-8 are not decided. Noise-free data: the
+    exact comparison, no tolerance beyond the 6.9 threshold and the 8 deg rival distance."""
+    times, truth, V, K_, frac, radius = _seed0_exact(9)
+    geo = BracketGeometry(vertices_m=V)
+    cfg = StrutDetectorConfig(strut_radius_m=radius)
+    cands = [[_candidate(h) for h in noise_free_hypotheses(T, geo, K_, frac, cfg)] for T in truth]
+    labs = {}
+    for back in (False, True):
+        lab = SequenceLabeller(V.mean(axis=0), LabellingConfig(reach_back=back))
+        for t, c in zip(times, cands, strict=True):
+            lab.step(t, c)
+        labs[back] = lab
+    forward = labs[False].decide()
+    assert all(d.candidate is not None for d in forward[5:]), [d.log_lr for d in forward]
+    reached = labs[True].decide()
+    assert all(d.candidate is None for d in reached[5:]), [d.log_lr for d in reached]
+    # the rival: a track from frame 0 to 8 that is more than 8 deg from the truth at frame 8
+    rivals = [
+        tr
+        for tr in labs[True].tracks
+        if tr.first == 0 and tr.last == 8 and _angle_deg(tr.fit.poses[-1], truth[8]) > 8.0
+    ]
+    assert rivals
+    # and a reported frame is still the truth (frames 0-1 part from every rival: decided)
+    for k, d in enumerate(reached):
+        if d.candidate is not None:
+            assert d.pose is not None and _angle_deg(d.pose, truth[k]) < 1.0, k
+
+
+def test_agree_is_the_rival_distance() -> None:
+    """`SequenceLabeller.agree` (used to refuse a reported pose whose per-frame refit slid to
+    another root): same answer within 8 deg and 5 % of the range, another beyond either
+    (exact geometry: 0.1 deg and 2 mm either side of the limits)."""
+    T = view(V_SKEW, 20.0, 0.0, 1.5, 0.5)
+    lab = SequenceLabeller(V_SKEW.mean(axis=0))
+    rng = float(np.linalg.norm(T.apply(V_SKEW.mean(axis=0)[None])[0]))
+
+    def turned(deg: float) -> Rigid3:
+        # about the camera axis through the centre's image: the centre stays put
+        c = T.apply(V_SKEW.mean(axis=0)[None])[0]
+        R = rotvec_to_matrix(np.array([0.0, 0.0, math.radians(deg)]))
+        return Rigid3(R=R @ T.R, t=R @ (T.t - c) + c)
+
+    def moved(m: float) -> Rigid3:
+        return Rigid3(R=T.R, t=T.t + np.array([m, 0.0, 0.0]))
+
+    assert lab.agree(T, turned(7.9)) and not lab.agree(T, turned(8.1))
+    assert lab.agree(T, moved(0.05 * rng - 0.002)) and not lab.agree(T, moved(0.05 * rng + 0.002))
