@@ -197,13 +197,16 @@ def verdict(sol: StarSolution, refs: list[dict[str, str]], width: int) -> tuple[
 
 def hint_deg(item: dict[str, str], refs: list[dict[str, str]]) -> float | None:
     """The ``--fov-deg`` a user would give: the source's stated field, else the reference's
-    rounded to 0.5 deg; no-star pictures: a star tracker's; a fisheye: none."""
+    rounded to 0.5 deg; no-star pictures: a star tracker's; none where the range it means
+    leaves the 0.5-90 deg that ``--fov-deg`` accepts (a fisheye, the Hubble deep field)."""
     if item["kind"] == "no_star":
         return NO_STAR_HINT_DEG
     fov = float(item["fov_deg"]) if item["fov_deg"] else None
     if fov is None and refs:
         fov = round(float(refs[0]["fov_deg"]) * 2) / 2
-    return fov if fov is not None and fov <= 90 else None
+    if fov is None or not (0.5 <= (1 - HINT_TOLERANCE) * fov and (1 + HINT_TOLERANCE) * fov <= 90):
+        return None  # outside what `--fov-deg` accepts (0.5-90 deg): a deep field, a fisheye
+    return fov
 
 
 def cell(sol: StarSolution, v: str, d: dict) -> list[str]:
