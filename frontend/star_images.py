@@ -919,12 +919,29 @@ def _false_alarm_bright(
     k_all = pred_px.shape[0]
     cuts = [k for k in (16 * 2**j for j in range(16)) if k < k_all] + [k_all]
     order = np.argsort(pred_mag, kind="stable")
-    rank = np.empty(k_all, np.int64)
-    rank[order] = np.arange(k_all)
-    best = 1.0
-    for k in cuts:
-        m = int(np.sum(rank[pi] < k))
-        best = min(best, _false_alarm(stars, pred_px[order[:k]], m, radius))
+    matched = np.zeros(k_all, bool)
+    matched[pi] = True
+    m_cum = np.cumsum(matched[order])
+    need_max = int(pi.size) - PATTERN_STARS
+    if need_max <= 0:
+        return 1.0
+    # One pass of `_false_alarm`'s recursion over the stars in brightness order: after the
+    # brightest k, dist[i] is the probability of exactly i chance matches among them (i <
+    # need_max; dist[need_max]: that many or more), so each cut's tail is a sum of its
+    # upper terms (no cancellation for tiny probabilities).
+    p = _chance_match(stars, pred_px[order], radius)
+    dist = np.zeros(need_max + 1)
+    dist[0] = 1.0
+    best, c = 1.0, 0
+    for j, pj in enumerate(p):
+        top = dist[need_max] + dist[need_max - 1] * pj
+        dist[1:need_max] = dist[1:need_max] * (1 - pj) + dist[: need_max - 1] * pj
+        dist[0] *= 1 - pj
+        dist[need_max] = top
+        if j + 1 == cuts[c]:
+            need = int(m_cum[j]) - PATTERN_STARS
+            best = min(best, float(dist[need:].sum()) if need > 0 else 1.0)
+            c += 1
     return min(1.0, best * len(cuts))
 
 
