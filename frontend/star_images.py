@@ -209,7 +209,7 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
     if sat_level is None and np.issubdtype(raw.dtype, np.integer):
         sat_level = float(np.iinfo(raw.dtype).max)
     img = raw.astype(np.float32)
-    if not np.isfinite(img).all():
+    if not np.issubdtype(raw.dtype, np.integer) and not np.isfinite(img).all():
         raise StarTrackerError("image holds non-finite values")
     h, w = img.shape
     sat = img >= sat_level if sat_level is not None else np.zeros(img.shape, bool)
@@ -226,11 +226,13 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
     ring = np.ones((3, 3), np.uint8)
     ring[1, 1] = 0
     nbr_max = cv2.dilate(sig, ring)
-    hot = (sig > c.k_sigma * noise) & (nbr_max < c.hot_pixel_ratio * sig) & ~sat
-    n_hot = int(hot.sum())
+    cand = np.flatnonzero(sig > c.k_sigma * noise)  # few pixels: the other tests on them only
+    sig_c = sig.ravel()[cand]
+    hot = cand[(nbr_max.ravel()[cand] < c.hot_pixel_ratio * sig_c) & ~sat.ravel()[cand]]
+    n_hot = int(hot.size)
     if n_hot:
         sig = sig.copy()
-        sig[hot] = cv2.medianBlur(sig, 3)[hot]
+        sig.ravel()[hot] = cv2.medianBlur(sig, 3).ravel()[hot]
 
     # Matched filter. Its noise is measured on the filtered image (block MADs), not
     # predicted from white noise: a textured foreground (roof, foliage) is correlated over
@@ -253,8 +255,10 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
         return _empty(w, h, noise_med, n_hot)
     # Grow each blob by one pixel (the PSF's wings below threshold), then centroid the kept
     # ones (a pixel next to two blobs goes to the larger label: rare among stars).
-    grown = cv2.dilate(labels.astype(np.float32), np.ones((3, 3), np.uint8))
-    pts = cv2.findNonZero((grown > 0).astype(np.uint8)).reshape(-1, 2)
+    square = np.ones((3, 3), np.uint8)
+    # uint16 where the labels fit (OpenCV dilates no int32; float32 is twice the memory).
+    grown = cv2.dilate(labels.astype(np.uint16 if n < 65536 else np.float32), square)
+    pts = cv2.findNonZero(cv2.dilate(mask, square)).reshape(-1, 2)
     ys, xs = pts[:, 1], pts[:, 0]
     gl = labels[ys, xs]
     gl = np.where(gl > 0, gl, grown[ys, xs].astype(np.int64))
