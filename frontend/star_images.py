@@ -881,25 +881,40 @@ def _chance_match(stars: ImageStars, pred_px: np.ndarray, radius: np.ndarray) ->
     return np.asarray(1.0 - np.exp(-summed[qi, qj] / inside[qi, qj]))
 
 
-def _false_alarm(stars: ImageStars, pred_px: np.ndarray, m: int, radius: np.ndarray) -> float:
-    """Probability that ``m - PATTERN_STARS`` or more of the predicted stars (pixels
-    (K, 2)) land within a match radius of some spot by chance: the upper tail of the
-    Poisson-binomial distribution of the stars' `_chance_match` probabilities (exact,
-    by the recursion over stars)."""
-    need = m - PATTERN_STARS
-    if need <= 0:
-        return 1.0
-    p = _chance_match(stars, pred_px, radius)
-    # dist[i]: probability of exactly i chance matches so far (i < need); dist[need]:
-    # of need or more.
+def _chance_counts(p: np.ndarray, need: int, cuts: list[int]) -> np.ndarray:
+    """Distribution of the number of chance matches among the first ``k`` stars, for each
+    ``k`` in ``cuts`` (ascending, at most ``len(p)``), the stars matching independently
+    with probabilities ``p``: rows (len(cuts), need + 1), column ``i`` the probability of
+    exactly ``i`` matches, the last column of ``need`` or more (exact, by the recursion
+    over stars; ``need`` >= 1)."""
     dist = np.zeros(need + 1)
     dist[0] = 1.0
-    for pj in p:
+    rows = np.zeros((len(cuts), need + 1))
+    c = 0
+    for j in range(p.size + 1):
+        while c < len(cuts) and cuts[c] == j:
+            rows[c] = dist
+            c += 1
+        if j == p.size or c == len(cuts):
+            break
+        pj = p[j]
         top = dist[need] + dist[need - 1] * pj
         dist[1:need] = dist[1:need] * (1 - pj) + dist[: need - 1] * pj
         dist[0] *= 1 - pj
         dist[need] = top
-    return float(min(dist[need], 1.0))
+    return rows
+
+
+def _false_alarm(stars: ImageStars, pred_px: np.ndarray, m: int, radius: np.ndarray) -> float:
+    """Probability that ``m - PATTERN_STARS`` or more of the predicted stars (pixels
+    (K, 2)) land within a match radius of some spot by chance: the upper tail of the
+    Poisson-binomial distribution of the stars' `_chance_match` probabilities
+    (`_chance_counts`)."""
+    need = m - PATTERN_STARS
+    if need <= 0:
+        return 1.0
+    p = _chance_match(stars, pred_px, radius)
+    return float(min(_chance_counts(p, need, [p.size])[0, need], 1.0))
 
 
 def _false_alarm_bright(
@@ -921,31 +936,21 @@ def _false_alarm_bright(
         pi: indices of the matched predicted stars.
     """
     k_all = pred_px.shape[0]
+    need_max = int(pi.size) - PATTERN_STARS
+    if need_max <= 0:
+        return 1.0
     cuts = [k for k in (16 * 2**j for j in range(16)) if k < k_all] + [k_all]
     order = np.argsort(pred_mag, kind="stable")
     matched = np.zeros(k_all, bool)
     matched[pi] = True
-    m_cum = np.cumsum(matched[order])
-    need_max = int(pi.size) - PATTERN_STARS
-    if need_max <= 0:
-        return 1.0
-    # One pass of `_false_alarm`'s recursion over the stars in brightness order: after the
-    # brightest k, dist[i] is the probability of exactly i chance matches among them (i <
-    # need_max; dist[need_max]: that many or more), so each cut's tail is a sum of its
-    # upper terms (no cancellation for tiny probabilities).
-    p = _chance_match(stars, pred_px[order], radius)
-    dist = np.zeros(need_max + 1)
-    dist[0] = 1.0
-    best, c = 1.0, 0
-    for j, pj in enumerate(p):
-        top = dist[need_max] + dist[need_max - 1] * pj
-        dist[1:need_max] = dist[1:need_max] * (1 - pj) + dist[: need_max - 1] * pj
-        dist[0] *= 1 - pj
-        dist[need_max] = top
-        if j + 1 == cuts[c]:
-            need = int(m_cum[j]) - PATTERN_STARS
-            best = min(best, float(dist[need:].sum()) if need > 0 else 1.0)
-            c += 1
+    m_cum = np.concatenate([[0], np.cumsum(matched[order])])
+    # One pass over the stars in brightness order gives every cut's distribution; each
+    # tail is a sum of its upper terms (no cancellation for tiny probabilities).
+    rows = _chance_counts(_chance_match(stars, pred_px[order], radius), need_max, cuts)
+    best = 1.0
+    for row, k in zip(rows, cuts, strict=True):
+        need = int(m_cum[k]) - PATTERN_STARS
+        best = min(best, float(row[need:].sum()) if need > 0 else 1.0)
     return min(1.0, best * len(cuts))
 
 

@@ -47,6 +47,7 @@ from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.events import Events
 from satpose.datasets.geometry import matrix_to_rotvec, rotvec_to_matrix
+from satpose.datasets.sequence import atomic_write
 from satpose.datasets.sky import radec_to_unit
 from satpose.frontend.star_events import StreamStats, stream_noise
 from satpose.frontend.star_sensor import (
@@ -886,14 +887,11 @@ def solver_database(min_fov_deg: float, max_fov_deg: float, epoch_yr: float) -> 
         max_fov_deg=max_fov_deg, min_fov_deg=min_fov_deg, epoch_proper_motion_year=epoch_yr
     )
     if path is not None:
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            db.save_to_file(str(tmp))
-            os.replace(tmp, path)
+            atomic_write(path, lambda tmp: db.save_to_file(str(tmp)))
         except Exception as exc:  # a read-only or full disk: carry on without saving
             _log.warning("%s: star database not saved (%s)", path, exc)
-            tmp.unlink(missing_ok=True)
     return db
 
 

@@ -39,7 +39,7 @@ def test_built_once_then_loaded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch)
     db = solver_database(*BAND)
     files = saved(tmp_path)
     assert len(files) == 1 and files[0].parent == database_cache_dir()
-    assert not list(tmp_path.rglob("*.tmp"))  # written under a temporary name, renamed
+    assert list(files[0].parent.iterdir()) == files  # the temporary file renamed, none left
     os.utime(files[0], (1e9, 1e9))
     solver_database.cache_clear()
     again = solver_database(*BAND)
