@@ -43,6 +43,7 @@ import time
 from dataclasses import replace
 from importlib.metadata import version
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from _common import machine_summary, write_page
@@ -162,22 +163,23 @@ def sep_deg(ra1: float, dec1: float, ra2: float, dec2: float) -> float:
     return math.degrees(math.atan2(float(np.linalg.norm(np.cross(u, v))), float(u @ v)))
 
 
-def compare(sol: StarSolution, ref: dict[str, str], width: int) -> dict[str, float]:
+def compare(sol: StarSolution, ref: dict[str, str], width: int) -> dict[str, Any]:
     """Differences of a solution from a reference row: boresight [arcsec], roll [arcsec],
-    field of view [%], and the agreement measures in pixels of the reference's scale."""
+    field of view [%], the largest of the three in pixels of the reference's scale
+    (``px``: the boresight, roll and field of view at the half width) and the reference's
+    ``solver``."""
     assert sol.R is not None and sol.camera is not None
     ra, dec, roll = radec_roll_deg(sol.R)
     fov_ref = float(ref["fov_deg"])
     px_deg = fov_ref / width  # mean scale across the width
     bore = sep_deg(ra, dec, float(ref["ra_deg"]), float(ref["dec_deg"]))
     droll = (roll - float(ref["roll_deg"]) + 180.0) % 360.0 - 180.0
+    dfov = sol.camera.fov_deg / fov_ref - 1
     return {
         "bore_arcsec": bore * 3600,
         "roll_arcsec": droll * 3600,
-        "fov_pct": (sol.camera.fov_deg / fov_ref - 1) * 100,
-        "bore_px": bore / px_deg,
-        "roll_px": abs(math.radians(droll)) * width / 2,
-        "fov_px": abs(sol.camera.fov_deg / fov_ref - 1) * width / 2,
+        "fov_pct": dfov * 100,
+        "px": max(bore / px_deg, abs(math.radians(droll)) * width / 2, abs(dfov) * width / 2),
         "solver": ref["solver"],
     }
 
@@ -190,8 +192,8 @@ def verdict(sol: StarSolution, refs: list[dict[str, str]], width: int) -> tuple[
     if not refs:
         return "unverified", {}
     ds = [compare(sol, r, width) for r in refs]
-    d = min(ds, key=lambda e: max(e["bore_px"], e["roll_px"], e["fov_px"]))
-    ok = max(d["bore_px"], d["roll_px"], d["fov_px"]) <= AGREE_PX
+    d = min(ds, key=lambda e: e["px"])
+    ok = d["px"] <= AGREE_PX
     return ("right" if ok else "wrong"), d
 
 
@@ -218,7 +220,7 @@ def cell(sol: StarSolution, v: str, d: dict) -> list[str]:
     ours = f"{ra:.4f} / {dec:+.4f} / {roll:+.3f} / {sol.camera.fov_deg:.4f}"
     diff = (
         f'{d["bore_arcsec"]:.0f}" / {d["roll_arcsec"]:+.0f}" / {d["fov_pct"]:+.3f} % '
-        f"({max(d['bore_px'], d['roll_px'], d['fov_px']):.1f} px; {d['solver']})"
+        f"({d['px']:.1f} px; {d['solver']})"
         if d
         else ""
     )
@@ -322,7 +324,7 @@ def main() -> None:
             ref_txt,
         ]
         table.append([*first, "unknown", *cell(sol_u, *outcomes["u"]), f"{db_s:.1f}"])
-        if sol_h is not None:
+        if sol_h is not None and hint is not None:
             given = f"{hint:g} ± {HINT_TOLERANCE * hint:.2g}"
             table.append(["", "", "", "", "", given, *cell(sol_h, *outcomes["h"]), ""])
         if item["kind"] == "sky" and refs and lo <= ref_fov <= hi:
