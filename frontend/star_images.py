@@ -33,6 +33,7 @@ correction). Roll convention: `radec_roll_deg`. Never imports gtsam.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass, field
@@ -40,7 +41,8 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy.stats import spearmanr
+from scipy.spatial import cKDTree
+from scipy.stats import rankdata
 
 from satpose.datasets.geometry import rotvec_to_matrix
 from satpose.frontend.stars import (
@@ -159,6 +161,15 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     return img
 
 
+def _median_last(a: np.ndarray) -> np.ndarray:
+    """``np.median(a, axis=-1)`` of a finite array, the same values: a sort along the last
+    axis (numpy's vectorised sort; several times faster than the median's partition on
+    blocks of a few hundred values)."""
+    n = a.shape[-1]
+    s = np.sort(a, axis=-1)
+    return s[..., n // 2] if n % 2 else np.mean(s[..., n // 2 - 1 : n // 2 + 1], axis=-1)
+
+
 def _block_stats(
     img: np.ndarray, block: int, stride: int, zero_median: bool = False
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
@@ -176,10 +187,10 @@ def _block_stats(
     cells = sub.reshape(nby, per, nbx, per).transpose(0, 2, 1, 3).reshape(nby, nbx, -1)
     if zero_median:
         med = np.zeros((nby, nbx), np.float32)
-        mad = (1.4826 * np.median(np.abs(cells), axis=2)).astype(np.float32)
+        mad = (1.4826 * _median_last(np.abs(cells))).astype(np.float32)
     else:
-        med = np.median(cells, axis=2).astype(np.float32)
-        mad = (1.4826 * np.median(np.abs(cells - med[:, :, None]), axis=2)).astype(np.float32)
+        med = _median_last(cells).astype(np.float32)
+        mad = (1.4826 * _median_last(np.abs(cells - med[:, :, None]))).astype(np.float32)
     own = mad
     # A 3x3 median over blocks removes blocks dominated by a bright star or a small object.
     if nby >= 3 and nbx >= 3:
@@ -219,30 +230,34 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
     # clipped background (8-bit JPEGs with a black sky), not a noiseless one; without this
     # floor every isolated count of 1 would be a detection or a hot pixel.
     floor = 1.0 if np.issubdtype(raw.dtype, np.integer) else 1e-6
-    noise = np.maximum(noise, max(noise_med * 0.5, floor))
-    sig = img - bg
+    # In place where an array is ours (full-size temporaries cost more than the arithmetic).
+    np.maximum(noise, max(noise_med * 0.5, floor), out=noise)
+    sig = np.subtract(img, bg, out=img)
 
     # Hot pixels: far above every neighbour. Replaced by the 3x3 median of the signal.
-    ring = np.ones((3, 3), np.uint8)
-    ring[1, 1] = 0
-    nbr_max = cv2.dilate(sig, ring)
-    cand = np.flatnonzero(sig > c.k_sigma * noise)  # few pixels: the other tests on them only
+    thr = np.multiply(noise, c.k_sigma, out=bg)  # bg's memory: no longer needed
+    cand = np.flatnonzero(sig > thr)  # few pixels: the other tests on them only
     sig_c = sig.ravel()[cand]
-    hot = cand[(nbr_max.ravel()[cand] < c.hot_pixel_ratio * sig_c) & ~sat.ravel()[cand]]
+    nbr_max = _window_max(sig, cand, centre=False)
+    hot = cand[(nbr_max < c.hot_pixel_ratio * sig_c) & ~sat.ravel()[cand]]
     n_hot = int(hot.size)
     if n_hot:
-        sig = sig.copy()
-        sig.ravel()[hot] = cv2.medianBlur(sig, 3).ravel()[hot]
+        sig.ravel()[hot] = _window_median(sig, hot)
 
     # Matched filter. Its noise is measured on the filtered image (block MADs), not
     # predicted from white noise: a textured foreground (roof, foliage) is correlated over
     # several pixels and survives the filter.
     s = c.filter_sigma_px
-    filt = cv2.GaussianBlur(sig, (0, 0), s)
+    filt = cv2.GaussianBlur(sig, (0, 0), s, dst=thr)  # thr's memory when it fits
     _, filt_noise, filt_med, _ = _block_stats(filt, c.block_px, 4, zero_median=True)
     # White noise of sigma n has sigma n / (2 sqrt(pi) s) after the Gaussian of sigma s.
-    filt_noise = np.maximum(filt_noise, max(0.5 * filt_med, floor / (2 * math.sqrt(math.pi) * s)))
-    mask = ((filt > c.k_sigma * filt_noise) | sat).astype(np.uint8)
+    np.maximum(
+        filt_noise, max(0.5 * filt_med, floor / (2 * math.sqrt(math.pi) * s)), out=filt_noise
+    )
+    filt_noise *= c.k_sigma  # now the threshold
+    mask = np.greater(filt, filt_noise)
+    mask |= sat
+    mask = mask.view(np.uint8)
     n, labels = cv2.connectedComponents(mask, connectivity=8)
     pts = cv2.findNonZero(mask)
     if n <= 1 or pts is None:
@@ -255,13 +270,11 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
         return _empty(w, h, noise_med, n_hot)
     # Grow each blob by one pixel (the PSF's wings below threshold), then centroid the kept
     # ones (a pixel next to two blobs goes to the larger label: rare among stars).
-    square = np.ones((3, 3), np.uint8)
-    # uint16 where the labels fit (OpenCV dilates no int32; float32 is twice the memory).
-    grown = cv2.dilate(labels.astype(np.uint16 if n < 65536 else np.float32), square)
-    pts = cv2.findNonZero(cv2.dilate(mask, square)).reshape(-1, 2)
+    pts = cv2.findNonZero(cv2.dilate(mask, np.ones((3, 3), np.uint8))).reshape(-1, 2)
     ys, xs = pts[:, 1], pts[:, 0]
-    gl = labels[ys, xs]
-    gl = np.where(gl > 0, gl, grown[ys, xs].astype(np.int64))
+    gl = labels[ys, xs].astype(np.int64)
+    rim = np.flatnonzero(gl == 0)  # the grown ring: the largest label of the 3x3 window
+    gl[rim] = _window_max(labels, ys[rim] * w + xs[rim], centre=True)
     kept = keep[gl]
     ys, xs, gl = ys[kept], xs[kept], gl[kept]
     v = np.clip(sig[ys, xs], 0, None).astype(np.float64)
@@ -330,6 +343,35 @@ def extract_stars(image: np.ndarray, config: StarExtractionConfig | None = None)
         hot_pixels=n_hot,
         texture=texture[order],
     )
+
+
+def _window_max(a: np.ndarray, flat: np.ndarray, centre: bool) -> np.ndarray:
+    """Largest value of 2-D ``a`` in the 3x3 window of each pixel ``flat`` (flat indices),
+    the centre included or not, pixels outside the image ignored: ``cv2.dilate`` at a few
+    pixels, without a full-size pass."""
+    h, w = a.shape
+    y, x = np.divmod(np.asarray(flat, np.int64), w)
+    out = np.full(y.shape, -np.inf if a.dtype.kind == "f" else np.iinfo(a.dtype).min, a.dtype)
+    flat_a = a.ravel()
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == dx == 0 and not centre:
+                continue
+            yy, xx = y + dy, x + dx
+            ok = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
+            v = flat_a[np.where(ok, yy * w + xx, 0)]
+            np.maximum(out, np.where(ok, v, out), out=out)
+    return out
+
+
+def _window_median(a: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """Median of 2-D ``a`` over the 3x3 window of each pixel ``flat`` (flat indices), the
+    image's edge replicated: ``cv2.medianBlur(a, 3)`` at a few pixels."""
+    h, w = a.shape
+    y, x = np.divmod(np.asarray(flat, np.int64), w)
+    yy = np.clip(y[None, :] + np.array([-1, -1, -1, 0, 0, 0, 1, 1, 1])[:, None], 0, h - 1)
+    xx = np.clip(x[None, :] + np.array([-1, 0, 1, -1, 0, 1, -1, 0, 1])[:, None], 0, w - 1)
+    return np.sort(a[yy, xx], axis=0)[4]
 
 
 def _empty(w: int, h: int, noise: float, hot: int) -> ImageStars:
@@ -416,6 +458,11 @@ class Refinement:
     chi2_red: float
 
 
+_JAC_STEP = 1e-7
+_JAC_ROT = rotvec_to_matrix(_JAC_STEP * np.eye(3))
+"""``Exp(h e_j)`` for the numerical Jacobian's three rotation columns (computed once)."""
+
+
 def _residuals(R: np.ndarray, cam: SkyCamera, r_inertial: np.ndarray, px: np.ndarray) -> np.ndarray:
     v = r_inertial @ R
     return cam.project(v) - px
@@ -459,11 +506,9 @@ def refine_camera(
         for _ in range(iterations):
             e0 = _residuals(R, cam, rr, pp).ravel() * w
             J = np.empty((e0.size, npar))
-            h = 1e-7
+            h = _JAC_STEP
             for j in range(3):
-                d = np.zeros(3)
-                d[j] = h
-                J[:, j] = (_residuals(R @ rotvec_to_matrix(d), cam, rr, pp).ravel() * w - e0) / h
+                J[:, j] = (_residuals(R @ _JAC_ROT[j], cam, rr, pp).ravel() * w - e0) / h
             cf = SkyCamera(cam.width, cam.height, cam.f_px * math.exp(h), cam.k)
             J[:, 3] = (_residuals(R, cf, rr, pp).ravel() * w - e0) / h
             if fit_distortion:
@@ -490,11 +535,9 @@ def refine_camera(
         keep = new_keep
     e = _residuals(R, cam, r_inertial[keep], px[keep]).ravel() / np.repeat(sigma_px[keep], 2)
     J = np.empty((e.size, npar))
-    h = 1e-7
+    h = _JAC_STEP
     for j in range(3):
-        d = np.zeros(3)
-        d[j] = h
-        ej = _residuals(R @ rotvec_to_matrix(d), cam, r_inertial[keep], px[keep]).ravel()
+        ej = _residuals(R @ _JAC_ROT[j], cam, r_inertial[keep], px[keep]).ravel()
         J[:, j] = (ej / np.repeat(sigma_px[keep], 2) - e) / h
     cf = SkyCamera(cam.width, cam.height, cam.f_px * math.exp(h), cam.k)
     J[:, 3] = (
@@ -674,12 +717,12 @@ def _match(
     spot) [px]: (predicted index, spot index) pairs."""
     if pred_px.shape[0] == 0 or spots_px.shape[0] == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    d2 = np.sum((pred_px[:, None, :] - spots_px[None, :, :]) ** 2, axis=2)
-    j = np.argmin(d2, axis=1)
-    i = np.argmin(d2, axis=0)
+    j = cKDTree(spots_px).query(pred_px)[1]
+    i = cKDTree(pred_px).query(spots_px)[1]
     pi = np.flatnonzero(i[j] == np.arange(pred_px.shape[0]))
     sj = j[pi]
-    ok = d2[pi, sj] < radius[sj] ** 2
+    d2 = np.sum((pred_px[pi] - spots_px[sj]) ** 2, axis=1)
+    ok = d2 < radius[sj] ** 2
     return pi[ok], sj[ok]
 
 
@@ -827,13 +870,12 @@ def _solve_band(
         )
         pi, sj = pi[ref.inlier], sj[ref.inlier]
     elapsed = cpu()
-    verdict = _verify(c, stars, prow, ppx, pi, sj, ref.R, ref.camera, cat)
+    verdict, fa = _verify(c, stars, prow, ppx, pi, sj, ref.R, ref.camera, cat)
     if verdict:
         return no_solution(f"verification failed: {verdict}", stars, elapsed)
     r = cat.unit[prow[pi]]
     res_px = np.linalg.norm(_residuals(ref.R, ref.camera, r, stars.px[sj]), axis=1)
     rmse_px = float(np.sqrt(np.mean(res_px**2)))
-    fa = _false_alarm_bright(stars, ppx, cat.mag[prow], pi, match_r)
     return StarSolution(
         "solved",
         "",
@@ -851,6 +893,9 @@ def _solve_band(
         (lo, hi),
     )
 
+
+_SEGMENT = 16
+"""Stars per segment of `_chance_counts`."""
 
 PATTERN_STARS = 4
 """Stars of the identifying pattern (tetra3rs' 4-star patterns): matched by construction,
@@ -885,23 +930,36 @@ def _chance_counts(p: np.ndarray, need: int, cuts: list[int]) -> np.ndarray:
     """Distribution of the number of chance matches among the first ``k`` stars, for each
     ``k`` in ``cuts`` (ascending, at most ``len(p)``), the stars matching independently
     with probabilities ``p``: rows (len(cuts), need + 1), column ``i`` the probability of
-    exactly ``i`` matches, the last column of ``need`` or more (exact, by the recursion
-    over stars; ``need`` >= 1)."""
+    exactly ``i`` matches, the last column of ``need`` or more (exact; ``need`` >= 1).
+
+    The generating polynomial ``prod_j (1 - p_j + p_j x)``, truncated at ``x^need`` (the
+    higher terms summed into it): the stars go in segments of at most `_SEGMENT` that end
+    at the cuts; every segment's own polynomial is built at once for all segments (one
+    vectorised step per star of a segment), then multiplied in one after the other. All
+    terms are sums of products of probabilities: no cancellation for tiny tails."""
+    p = np.asarray(p, float)
+    bounds = sorted({0, *range(_SEGMENT, p.size, _SEGMENT), *cuts})
+    seg_p = np.zeros((max(len(bounds) - 1, 0), _SEGMENT))
+    for s, (a, b) in enumerate(itertools.pairwise(bounds)):
+        seg_p[s, : b - a] = p[a:b]
+    poly = np.zeros((seg_p.shape[0], _SEGMENT + 1))
+    poly[:, 0] = 1.0
+    for col in seg_p.T[:, :, None]:  # one star of every segment (p = 0 past a short one)
+        poly[:, 1:] = poly[:, 1:] * (1 - col) + poly[:, :-1] * col
+        poly[:, :1] *= 1 - col
     dist = np.zeros(need + 1)
     dist[0] = 1.0
     rows = np.zeros((len(cuts), need + 1))
     c = 0
-    for j in range(p.size + 1):
-        while c < len(cuts) and cuts[c] == j:
+    for s, start in enumerate(bounds):
+        while c < len(cuts) and cuts[c] == start:
             rows[c] = dist
             c += 1
-        if j == p.size or c == len(cuts):
+        if c == len(cuts) or s == poly.shape[0]:
             break
-        pj = p[j]
-        top = dist[need] + dist[need - 1] * pj
-        dist[1:need] = dist[1:need] * (1 - pj) + dist[: need - 1] * pj
-        dist[0] *= 1 - pj
-        dist[need] = top
+        full = np.convolve(dist[:need], poly[s])
+        dist[need] += full[need:].sum()
+        dist[:need] = full[:need]
     return rows
 
 
@@ -974,24 +1032,26 @@ def _verify(
     R: np.ndarray,
     cam: SkyCamera,
     cat: SolverCatalogue,
-) -> str:
-    """'' if the predicted stars confirm the solution, else why not."""
+) -> tuple[str, float]:
+    """('', false-alarm probability) if the predicted stars confirm the solution, else
+    (why not, the probability or 1 where not computed)."""
     m = int(pi.size)
     if m < c.min_matches:
-        return f"{m} of {prow.size} predicted stars found (need {c.min_matches})"
+        return f"{m} of {prow.size} predicted stars found (need {c.min_matches})", 1.0
     match_r = np.maximum(c.match_radius_px, 3 * stars.sigma_px)
     fa = _false_alarm_bright(stars, ppx, cat.mag[prow], pi, match_r)
     if fa > c.max_false_alarm:
-        return f"{m} of {prow.size} predicted stars found, as likely by chance (p = {fa:.1e})"
+        return f"{m} of {prow.size} predicted stars found, as likely by chance (p = {fa:.1e})", fa
     r = cat.unit[prow[pi]]
     res = np.linalg.norm(_residuals(R, cam, r, stars.px[sj]), axis=1)
     rmse = float(np.sqrt(np.mean(res**2)))
     if rmse > c.max_rmse_px:
-        return f"residuals {rmse:.2f} px RMS over {m} stars (max {c.max_rmse_px})"
+        return f"residuals {rmse:.2f} px RMS over {m} stars (max {c.max_rmse_px})", fa
     if m >= 10:
-        rho = float(spearmanr(stars.flux[sj], -cat.mag[prow[pi]]).statistic)
+        # Spearman's rank correlation (ties: average ranks).
+        rho = float(np.corrcoef(rankdata(stars.flux[sj]), rankdata(-cat.mag[prow[pi]]))[0, 1])
         if not rho >= c.min_rank_correlation:
-            return f"spot brightness does not follow catalogue magnitude (rank corr. {rho:.2f})"
+            return f"spot brightness does not follow catalogue magnitude (rank corr. {rho:.2f})", fa
     # The field of view against the whole search, not the band that identified the stars:
     # a band's database holds patterns beyond its nominal range (from its short side at
     # the minimum), and a verified solution found by the 8-25 deg band at 6.07 deg (an
@@ -999,8 +1059,8 @@ def _verify(
     fov = cam.fov_deg
     lo, hi = searched_fov_deg(c)
     if not (lo <= fov <= hi):
-        return f"field of view {fov:.3f} deg outside the searched {lo:.3g}-{hi:.3g} deg"
-    return ""
+        return f"field of view {fov:.3f} deg outside the searched {lo:.3g}-{hi:.3g} deg", fa
+    return "", fa
 
 
 def check_attitude(
@@ -1025,5 +1085,5 @@ def check_attitude(
     cat = solver_catalogue(scales[0], scales[1], c.epoch_yr)
     prow, ppx = _predict(cat, R, camera, float(np.max(cat.mag)))
     pi, sj = _match(ppx, stars.px, np.maximum(c.match_radius_px, 3 * stars.sigma_px))
-    verdict = _verify(c, stars, prow, ppx, pi, sj, R, camera, cat)
+    verdict, _ = _verify(c, stars, prow, ppx, pi, sj, R, camera, cat)
     return verdict, int(pi.size), int(prow.size)

@@ -23,8 +23,12 @@ from satpose.frontend.star_images import (
     StarExtractionConfig,
     StarSolution,
     StarSolveConfig,
+    _chance_counts,
     _chance_match,
     _false_alarm,
+    _match,
+    _median_last,
+    _window_max,
     check_attitude,
     extract_stars,
     fov_to_focal,
@@ -366,3 +370,77 @@ def test_chance_match_follows_the_spots_local_density() -> None:
     on_sky = rng.uniform([300, 300], [1024, 768], size=(50, 2))
     assert _false_alarm(stars, in_crowd, 12, radius) > 1e-3
     assert _false_alarm(stars, on_sky, 12, radius) < 1e-12  # the solver refuses above 1e-9
+
+
+def test_chance_counts_equals_the_enumeration_and_the_star_by_star_recursion() -> None:
+    """Seeded. Small sets: every one of the 2^n outcomes summed (rtol 1e-12). Large sets
+    (up to 700 stars, tails down to 1e-200) against the plain recursion one star at a
+    time: relative 1e-11 (the segments only regroup sums of positive products)."""
+    rng = np.random.default_rng(11)
+    for _ in range(40):
+        n = int(rng.integers(1, 11))
+        p = rng.uniform(0, 1, n)
+        need = int(rng.integers(1, n + 1))
+        exact = np.zeros(need + 1)
+        for bits in np.ndindex(*(2,) * n):
+            b = np.array(bits, bool)
+            exact[min(int(b.sum()), need)] += np.prod(np.where(b, p, 1 - p))
+        cuts = sorted({int(rng.integers(0, n + 1)), n})
+        rows = _chance_counts(p, need, cuts)
+        np.testing.assert_allclose(rows[-1], exact, rtol=1e-12, atol=0)
+        assert rows.shape == (len(cuts), need + 1)
+    for _ in range(20):
+        n = int(rng.integers(20, 700))
+        p = rng.uniform(0, rng.choice([1e-4, 1e-2, 0.3]), n)
+        need = int(rng.integers(1, min(n, 300)))
+        cuts = [k for k in (16, 32, 64, 128, 256, 512) if k < n] + [n]
+        rows = _chance_counts(p, need, cuts)
+        dist = np.zeros(need + 1)
+        dist[0] = 1.0
+        for j, pj in enumerate(p, start=1):
+            top = dist[need] + dist[need - 1] * pj
+            dist[1:need] = dist[1:need] * (1 - pj) + dist[: need - 1] * pj
+            dist[0] *= 1 - pj
+            dist[need] = top
+            if j in cuts:
+                row = rows[cuts.index(j)]
+                big = dist > 1e-200
+                np.testing.assert_allclose(row[big], dist[big], rtol=1e-11, atol=0)
+                assert np.all(row[~big] < 1e-190)
+
+
+def test_window_max_median_and_match_equal_their_full_size_forms() -> None:
+    """Seeded, exact: `_window_max` at every border pixel and 500 inner ones equals
+    ``cv2.dilate`` (3x3, with and without the centre; outside ignored) on float32 and on
+    int32 labels; `_median_last` equals ``np.median`` on even and odd blocks;
+    `_match` equals the mutual nearest neighbours of the full distance matrix."""
+    rng = np.random.default_rng(12)
+    a = rng.normal(0, 1, (37, 53)).astype(np.float32)
+    lab = rng.integers(0, 400, (37, 53)).astype(np.int32)
+    h, w = a.shape
+    border = np.flatnonzero(np.pad(np.zeros((h - 2, w - 2), bool), 1, constant_values=True))
+    flat = np.concatenate([border, rng.integers(0, h * w, 500)])
+    ring = np.ones((3, 3), np.uint8)
+    ring[1, 1] = 0
+    np.testing.assert_array_equal(
+        _window_max(a, flat, centre=False), cv2.dilate(a, ring).ravel()[flat]
+    )
+    np.testing.assert_array_equal(
+        _window_max(a, flat, centre=True), cv2.dilate(a, np.ones((3, 3), np.uint8)).ravel()[flat]
+    )
+    full = cv2.dilate(lab.astype(np.float64), np.ones((3, 3), np.uint8)).ravel()[flat]
+    np.testing.assert_array_equal(_window_max(lab, flat, centre=True), full)
+    for n in (64, 256, 63):
+        cells = np.round(rng.normal(100, 5, (6, 7, n))).astype(np.float32)
+        np.testing.assert_array_equal(_median_last(cells), np.median(cells, axis=2))
+    pred = rng.uniform(0, 100, (80, 2))
+    spots = np.vstack([pred[:50] + rng.normal(0, 0.5, (50, 2)), rng.uniform(0, 100, (30, 2))])
+    radius = rng.uniform(0.5, 2.0, spots.shape[0])
+    d2 = np.sum((pred[:, None] - spots[None]) ** 2, axis=2)
+    j, i = np.argmin(d2, axis=1), np.argmin(d2, axis=0)
+    pi = np.flatnonzero(i[j] == np.arange(80))
+    ok = d2[pi, j[pi]] < radius[j[pi]] ** 2
+    got = _match(pred, spots, radius)
+    np.testing.assert_array_equal(got[0], pi[ok])
+    np.testing.assert_array_equal(got[1], j[pi][ok])
+    assert 20 < got[0].size <= 50  # most of the 50 near pairs within their radius
