@@ -29,6 +29,7 @@ from satpose.frontend.star_images import (
     _match,
     _median_last,
     _window_max,
+    _window_median,
     check_attitude,
     extract_stars,
     fov_to_focal,
@@ -412,7 +413,8 @@ def test_chance_counts_equals_the_enumeration_and_the_star_by_star_recursion() -
 def test_window_max_median_and_match_equal_their_full_size_forms() -> None:
     """Seeded, exact: `_window_max` at every border pixel and 500 inner ones equals
     ``cv2.dilate`` (3x3, with and without the centre; outside ignored) on float32 and on
-    int32 labels; `_median_last` equals ``np.median`` on even and odd blocks;
+    int32 labels, `_window_median` equals ``cv2.medianBlur`` (3x3, edge replicated);
+    `_median_last` equals ``np.median`` on even and odd blocks;
     `_match` equals the mutual nearest neighbours of the full distance matrix."""
     rng = np.random.default_rng(12)
     a = rng.normal(0, 1, (37, 53)).astype(np.float32)
@@ -428,6 +430,7 @@ def test_window_max_median_and_match_equal_their_full_size_forms() -> None:
     np.testing.assert_array_equal(
         _window_max(a, flat, centre=True), cv2.dilate(a, np.ones((3, 3), np.uint8)).ravel()[flat]
     )
+    np.testing.assert_array_equal(_window_median(a, flat), cv2.medianBlur(a, 3).ravel()[flat])
     full = cv2.dilate(lab.astype(np.float64), np.ones((3, 3), np.uint8)).ravel()[flat]
     np.testing.assert_array_equal(_window_max(lab, flat, centre=True), full)
     for n in (64, 256, 63):
