@@ -331,3 +331,23 @@ def test_tracker_refines_tracked_components() -> None:
     d = np.linalg.norm(comps2[:, None] - blobs[None, :, :2], axis=2)
     assert sorted(d.argmin(axis=1)) == [0, 1, 2, 3]
     assert d.min(axis=1).max() < 0.1
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="bug: PanelTracker.reset() keeps _frames_since_detection, so after a reset the "
+    "components are not searched until the every-5th-frame cadence comes round (0 found "
+    "where a fresh tracker finds 4)",
+)
+def test_components_are_searched_on_the_frame_after_reset(scene) -> None:  # type: ignore[no-untyped-def]
+    """`reset` forgets the tracks so that the next frame acquires afresh (the pipeline resets
+    the panel trackers whenever the ring is lost): that frame must search for components as
+    a fresh tracker's first frame does."""
+    _, ring, g, g8 = scene
+    image_s = smoothed(g, CORNERS.edges)
+    tracker = PanelTracker(CORNERS, COMPONENTS)
+    for _ in range(2):
+        assert tracker.update(g, g8, image_s, ring, with_components=True)[1].shape == (4, 2)
+    tracker.reset()
+    _, comps = tracker.update(g, g8, image_s, ring, with_components=True)
+    assert comps.shape == (4, 2)
