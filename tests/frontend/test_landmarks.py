@@ -168,10 +168,11 @@ def test_first_frame_measurements_are_exact(images) -> None:  # type: ignore[no-
 
 def test_noisy_points_are_consistent_with_their_covariance(images) -> None:  # type: ignore[no-untyped-def]
     """Pixel noise at the corner sigma (0.3 px) on both images, 40 points at 3-8 m on rows
-    10 px apart (no mispairing: a wrong row is > 25 sigma away), 10 seeds: the NEES of the
+    10 px apart (no mispairing: a wrong row is > 20 sigma away), 10 seeds: the NEES of the
     400 triangulated points against the truth with their reported covariance is chi2(3):
     mean 3 within 3 sigma of the mean of 400 draws, 3 * sqrt(6 / 400) = 0.37. No point is lost
-    (a true pair leaves the 2 px epipolar gate with probability ~1e-6)."""
+    (a true pair leaves the 2 px epipolar gate, 4.7 sigma of the row difference, with
+    probability ~3e-6)."""
     sigma = CONFIG.sigma_px["corner"]
     nees = []
     for seed in range(10):
