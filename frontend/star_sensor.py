@@ -369,19 +369,38 @@ class Thresholds:
     refractory_gain: float
 
 
+def _soft_l1(weight: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """scipy's ``soft_l1`` loss ``rho(z) = 2 (sqrt(1 + z) - 1)`` with its two derivatives,
+    each residual's times its ``weight``: the cost of ``weight`` identical residuals."""
+
+    def loss(z: np.ndarray) -> np.ndarray:
+        t = 1.0 + z
+        return np.vstack([2.0 * (t**0.5 - 1.0), t**-0.5, -0.5 * t**-1.5]) * weight
+
+    return loss
+
+
 def _fit_c(
-    mag: np.ndarray, y: np.ndarray, a0: float | None = None, c_on: float = 0.0
+    mag: np.ndarray,
+    y: np.ndarray,
+    a0: float | None = None,
+    c_on: float = 0.0,
+    weight: np.ndarray | None = None,
 ) -> tuple[float, float]:
     """Least squares (soft L1) of ``y = log1p(exp(a - 0.921 m)) / C`` for ``(a, C)``; with
     ``a0`` and ``c_on`` given, of ``y = (log1p(exp(a0 - 0.921 m)) - c_on / 2) / C`` for ``C``
     (the OFF run starts from the ON run's top, on average half an ON threshold below the
-    peak). Returns ``(a, C)``."""
+    peak). ``weight``: how many passes each ``(mag, y)`` row stands for (the passes' counts
+    are integers, so a few thousand distinct rows stand for tens of thousands of passes;
+    the cost is that of the passes one by one). Returns ``(a, C)``."""
     from scipy.optimize import least_squares
 
+    k = np.ones(mag.size) if weight is None else np.asarray(weight, float)
     if a0 is None:
-        # Start: bright stars' slope.
-        c0 = max(LN10_04 / max(-np.polyfit(mag, y, 1)[0], 1e-3), 0.01)
-        a_start = float(np.median(y * c0 + LN10_04 * mag))
+        # Start: bright stars' slope (over the passes, each row as often as it stands for).
+        c0 = max(LN10_04 / max(-np.polyfit(mag, y, 1, w=np.sqrt(k))[0], 1e-3), 0.01)
+        reps = np.repeat(np.arange(mag.size), k.astype(np.int64))
+        a_start = float(np.median(y[reps] * c0 + LN10_04 * mag[reps]))
 
         def res(q: np.ndarray) -> np.ndarray:
             return np.log1p(np.exp(q[0] - LN10_04 * mag)) / q[1] - y
@@ -389,7 +408,7 @@ def _fit_c(
         sol = least_squares(
             res,
             [a_start, c0],
-            loss="soft_l1",
+            loss=_soft_l1(k),
             f_scale=1.0,
             bounds=([-np.inf, 1e-3], [np.inf, 10.0]),
         )
@@ -400,9 +419,15 @@ def _fit_c(
         return top / q[0] - y
 
     sol = least_squares(
-        res1, [max(c_on, 0.01)], loss="soft_l1", f_scale=1.0, bounds=([1e-3], [10.0])
+        res1, [max(c_on, 0.01)], loss=_soft_l1(k), f_scale=1.0, bounds=([1e-3], [10.0])
     )
     return float(a0), float(sol.x[0])
+
+
+def _distinct(star: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct ``(star, y)`` rows of the passes and how many passes each stands for."""
+    rows, count = np.unique(np.column_stack([star, y]), axis=0, return_counts=True)
+    return rows[:, 0].astype(np.int64), rows[:, 1], count
 
 
 def estimate_thresholds(
@@ -459,24 +484,28 @@ def estimate_thresholds(
     if not keep.any():
         return None
     star = idx[keep, 0]
-    mag = cat_mag[star]
     y_on = passes.steps_on[keep] + 0.5
     y_off = passes.steps_off[keep] + 0.5
     stars = np.unique(star)
     if stars.size < min_stars or float(np.ptp(cat_mag[stars])) < min_mag_range:
         return None
-    a, c_on = _fit_c(mag, y_on)
-    _, c_off = _fit_c(mag, y_off, a0=a, c_on=c_on)
+    # The fits run on the distinct (star, count) rows, each weighted by its passes.
+    s_on, yd_on, k_on = _distinct(star, y_on)
+    s_off, yd_off, k_off = _distinct(star, y_off)
+    a, c_on = _fit_c(cat_mag[s_on], yd_on, weight=k_on)
+    _, c_off = _fit_c(cat_mag[s_off], yd_off, a0=a, c_on=c_on, weight=k_off)
+    i_on, i_off = np.searchsorted(stars, s_on), np.searchsorted(stars, s_off)
     rng = np.random.default_rng(seed)
     boot = []
-    members = [np.flatnonzero(star == s) for s in stars]
     for _ in range(bootstrap):
         pick = rng.integers(0, stars.size, stars.size)
-        rows = np.concatenate([members[i] for i in pick])
-        if np.ptp(mag[rows]) < 0.5:
+        if np.ptp(cat_mag[stars[pick]]) < 0.5:
             continue
-        ab, cb_on = _fit_c(mag[rows], y_on[rows])
-        _, cb_off = _fit_c(mag[rows], y_off[rows], a0=ab, c_on=cb_on)
+        times = np.bincount(pick, minlength=stars.size)  # each star's passes, this often
+        w_on, w_off = k_on * times[i_on], k_off * times[i_off]
+        on, off = w_on > 0, w_off > 0
+        ab, cb_on = _fit_c(cat_mag[s_on[on]], yd_on[on], weight=w_on[on])
+        _, cb_off = _fit_c(cat_mag[s_off[off]], yd_off[off], a0=ab, c_on=cb_on, weight=w_off[off])
         boot.append((cb_on, cb_off, 0.5 * (cb_on + cb_off)))
     sd = np.std(np.array(boot), axis=0) if len(boot) > 2 else np.full(3, math.inf)
     n_ev = float(np.sum(passes.n_on[keep] + passes.n_off[keep]))
