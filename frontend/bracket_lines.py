@@ -1312,7 +1312,7 @@ def _side_silhouette(prof: np.ndarray, noise: float) -> float:
     ``4 noise`` (at least 3 DN), contiguously from the edge; the silhouette is the steepest
     point of that shoulder's outer step. 0 too when the shoulder reaches the background's
     window, when it is only the blurred foot of the edge itself (its step less than 2 px
-    beyond the edge), or when that step is less than 1.5 thresholds high (a background that
+    beyond the edge), or when that step is less than the threshold high (a background that
     drifts slowly, e.g. a glint's flank)."""
     far = prof[-5:]
     if float(np.ptp(far)) > 8 * noise + 3.0:
@@ -1337,8 +1337,8 @@ def _side_silhouette(prof: np.ndarray, noise: float) -> float:
     if not peaks:
         return 0.0
     i = max(peaks, key=lambda j: g[j])
-    # a step, not a drift of the background: at least 1.5 thresholds across 3 px
-    if abs(float(prof[i - 1]) - float(prof[min(i + 2, len(prof) - 1)])) < 1.5 * tau:
+    # a step, not a drift of the background: at least the threshold across 3 px
+    if abs(float(prof[i - 1]) - float(prof[min(i + 2, len(prof) - 1)])) < tau:
         return 0.0
     den = g[i - 1] - 2 * g[i] + g[i + 1]
     out = i + 0.5 + (0.5 * (g[i - 1] - g[i + 1]) / den if den < 0 else 0.0)
