@@ -1379,10 +1379,12 @@ def _silhouette_refit(img: np.ndarray, strut: Strut) -> Strut:
 
 
 def partial_candidates(
-    image: np.ndarray, config: StrutDetectorConfig
+    image: np.ndarray, config: StrutDetectorConfig, silhouette: bool = True
 ) -> tuple[np.ndarray, list[Strut]] | StrutDetection:
     """LSD segments and strut candidates (longest support first) of a grey (or BGR) image,
-    or a `StrutDetection` with the reason when there are too few."""
+    or a `StrutDetection` with the reason when there are too few. ``silhouette``: each
+    candidate moved to the strut's silhouette where its bar is only the lit part
+    (`_silhouette_refit`); False: the bars as found."""
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -1393,10 +1395,10 @@ def partial_candidates(
         return StrutDetection(None, None, seg, reason=f"only {len(seg)} line segments")
     scaled = img.astype(np.float32) * (255.0 / float(img.max()))
     blurred = cv2.GaussianBlur(scaled, (0, 0), config.blur_sigma_px)
-    cands = sorted(
-        (_silhouette_refit(blurred, c) for c in _merge(_bars(scaled, seg, config), config)),
-        key=lambda c: -c.support_px,
-    )
+    merged = _merge(_bars(scaled, seg, config), config)
+    if silhouette:
+        merged = [_silhouette_refit(blurred, c) for c in merged]
+    cands = sorted(merged, key=lambda c: -c.support_px)
     if len(cands) < 3:
         return StrutDetection(
             None, None, seg, tuple(cands), reason=f"{len(cands)} strut candidates (need 3)"
