@@ -212,3 +212,24 @@ def test_bar_whose_edges_are_the_silhouette_is_kept() -> None:
     fixed = bl._silhouette_refit(blurred, bar)
     assert np.allclose(fixed.point, bar.point, atol=0.3)
     assert abs(fixed.width_px - bar.width_px) < 1.0
+
+
+def test_partial_candidates_without_the_silhouette_refit_keep_the_bars() -> None:
+    """``partial_candidates(..., silhouette=False)`` gives the bars as found (what
+    `satpose bracket` searches when the refitted candidates hold no consistent bracket); the
+    default moves the side-lit strut to its axis (within 1 px; the bar was > 2.5 px off)."""
+    cfg = StrutDetectorConfig()
+    img, yc = shaded_cylinder(9.0, 70.0, background=1.0, ambient=18.0, seed=3)
+    # two more struts (uniformly bright, vertical, away from the profile stations) so that
+    # there are three candidates
+    img[:, 4:16] = np.maximum(img[:, 4:16], 150)
+    img[:, 224:234] = np.maximum(img[:, 224:234], 150)
+    refit = bl.partial_candidates(img, cfg)
+    raw = bl.partial_candidates(img, cfg, silhouette=False)
+    assert not isinstance(refit, bl.StrutDetection) and not isinstance(raw, bl.StrutDetection)
+
+    def horizontal(cands: list[bl.Strut]) -> bl.Strut:
+        return max((c for c in cands if abs(c.direction[0]) > 0.99), key=lambda c: c.support_px)
+
+    assert abs(centre_y(horizontal(raw[1]), 120.0) - yc) > 2.5
+    assert abs(centre_y(horizontal(refit[1]), 120.0) - yc) < 1.0
