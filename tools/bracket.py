@@ -269,6 +269,17 @@ def run_bracket(
                         det = detect_partial(
                             prep.gray8, K, geo, partial[0], det_cfg, prepared=cands
                         )
+                        if det.result is None and not det.alternatives:
+                            # the silhouette refit can move one strut and not another (a
+                            # shaded side seen against the wall on one, against space on the
+                            # other) and leave no consistent triple: the bars as found
+                            # (tuning seed 18, frames 9-11)
+                            raw = partial_candidates(prep.gray8, det_cfg, silhouette=False)
+                            det_raw = detect_partial(
+                                prep.gray8, K, geo, partial[0], det_cfg, prepared=raw
+                            )
+                            if det_raw.result is not None or det_raw.alternatives:
+                                det, cands = det_raw, raw
                         # also near the best tracks' predictions (a least-squares start
                         # there finds a pose whose P3P pair noise turned complex)
                         near = [
