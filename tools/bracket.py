@@ -265,21 +265,23 @@ def run_bracket(
                             None, None, np.zeros((0, 4)), reason=f"image {prep.problem}"
                         )
                     elif labeller is not None and partial is not None:
-                        cands = partial_candidates(prep.gray8, det_cfg)
+                        cands = partial_candidates(prep.gray8, det_cfg, silhouette=False)
                         det = detect_partial(
                             prep.gray8, K, geo, partial[0], det_cfg, prepared=cands
                         )
                         if det.result is None and not det.alternatives:
-                            # the silhouette refit can move one strut and not another (a
-                            # shaded side seen against the wall on one, against space on the
-                            # other) and leave no consistent triple: the bars as found
-                            # (tuning seed 18, frames 9-11)
-                            raw = partial_candidates(prep.gray8, det_cfg, silhouette=False)
-                            det_raw = detect_partial(
-                                prep.gray8, K, geo, partial[0], det_cfg, prepared=raw
+                            # no consistent triple among the bars as found: each bar moved
+                            # to its strut's silhouette where it is only the lit part of a
+                            # side-lit strut (tuning seed 24). Only then: where the bars as
+                            # found fit, the refit moves some struts and not others and
+                            # costs accuracy (tuning seeds 1, 26, 31: up to 1.6x their
+                            # bound), and it can lose a triple (seed 18, frames 9-11)
+                            refit = partial_candidates(prep.gray8, det_cfg, silhouette=True)
+                            det_refit = detect_partial(
+                                prep.gray8, K, geo, partial[0], det_cfg, prepared=refit
                             )
-                            if det_raw.result is not None or det_raw.alternatives:
-                                det, cands = det_raw, raw
+                            if det_refit.result is not None or det_refit.alternatives:
+                                det, cands = det_refit, refit
                         # also near the best tracks' predictions (a least-squares start
                         # there finds a pose whose P3P pair noise turned complex)
                         near = [
