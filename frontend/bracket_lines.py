@@ -1378,6 +1378,29 @@ def _silhouette_refit(img: np.ndarray, strut: Strut) -> Strut:
     return replace(strut, point=strut.point + shift * n, width_px=w + ext[0] + ext[1])
 
 
+def _scaled(gray: np.ndarray) -> np.ndarray:
+    """A grey image as float32 scaled to a maximum of 255 (what the bar finder measures)."""
+    return gray.astype(np.float32) * (255.0 / float(gray.max()))
+
+
+def _refit_all(scaled: np.ndarray, cands: list[Strut], config: StrutDetectorConfig) -> list[Strut]:
+    """`_silhouette_refit` of every candidate on the blurred ``scaled`` image (their order
+    kept: the refit changes no support)."""
+    blurred = cv2.GaussianBlur(scaled, (0, 0), config.blur_sigma_px)
+    return [_silhouette_refit(blurred, c) for c in cands]
+
+
+def silhouette_candidates(
+    image: np.ndarray, prepared: tuple[np.ndarray, list[Strut]], config: StrutDetectorConfig
+) -> tuple[np.ndarray, list[Strut]]:
+    """The candidates of ``prepared`` (`partial_candidates` of this grey ``image`` with
+    ``silhouette=False``) moved to their struts' silhouettes: the same as
+    `partial_candidates` with ``silhouette=True``, without finding the segments and bars
+    again."""
+    seg, cands = prepared
+    return seg, _refit_all(_scaled(np.asarray(image)), cands, config)
+
+
 def partial_candidates(
     image: np.ndarray, config: StrutDetectorConfig, silhouette: bool = True
 ) -> tuple[np.ndarray, list[Strut]] | StrutDetection:
@@ -1393,12 +1416,10 @@ def partial_candidates(
     seg = line_segments(img, config)
     if len(seg) < 2:
         return StrutDetection(None, None, seg, reason=f"only {len(seg)} line segments")
-    scaled = img.astype(np.float32) * (255.0 / float(img.max()))
-    blurred = cv2.GaussianBlur(scaled, (0, 0), config.blur_sigma_px)
-    merged = _merge(_bars(scaled, seg, config), config)
+    scaled = _scaled(img)
+    cands = sorted(_merge(_bars(scaled, seg, config), config), key=lambda c: -c.support_px)
     if silhouette:
-        merged = [_silhouette_refit(blurred, c) for c in merged]
-    cands = sorted(merged, key=lambda c: -c.support_px)
+        cands = _refit_all(scaled, cands, config)
     if len(cands) < 3:
         return StrutDetection(
             None, None, seg, tuple(cands), reason=f"{len(cands)} strut candidates (need 3)"

@@ -66,6 +66,7 @@ from satpose.frontend.bracket_lines import (
     partial_candidates,
     partial_hypotheses,
     refine_partial_pose,
+    silhouette_candidates,
 )
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
 from satpose.frontend.preprocess import Undistorter
@@ -269,14 +270,18 @@ def run_bracket(
                         det = detect_partial(
                             prep.gray8, K, geo, partial[0], det_cfg, prepared=cands
                         )
-                        if det.result is None and not det.alternatives:
+                        if (
+                            det.result is None
+                            and not det.alternatives
+                            and not isinstance(cands, StrutDetection)
+                        ):
                             # no consistent triple among the bars as found: each bar moved
                             # to its strut's silhouette where it is only the lit part of a
                             # side-lit strut (tuning seed 24). Only then: where the bars as
                             # found fit, the refit moves some struts and not others and
                             # costs accuracy (tuning seeds 1, 26, 31: up to 1.6x their
                             # bound), and it can lose a triple (seed 18, frames 9-11)
-                            refit = partial_candidates(prep.gray8, det_cfg, silhouette=True)
+                            refit = silhouette_candidates(prep.gray8, cands, det_cfg)
                             det_refit = detect_partial(
                                 prep.gray8, K, geo, partial[0], det_cfg, prepared=refit
                             )

@@ -5,6 +5,7 @@ tracked gate (the decision over frames: tests/backend/test_labelling.py)."""
 from __future__ import annotations
 
 import math
+from dataclasses import astuple
 
 import cv2
 import numpy as np
@@ -216,8 +217,9 @@ def test_bar_whose_edges_are_the_silhouette_is_kept() -> None:
 
 def test_partial_candidates_without_the_silhouette_refit_keep_the_bars() -> None:
     """``partial_candidates(..., silhouette=False)`` gives the bars as found (what
-    `satpose bracket` searches when the refitted candidates hold no consistent bracket); the
-    default moves the side-lit strut to its axis (within 1 px; the bar was > 2.5 px off)."""
+    `satpose bracket` searches first); the default moves the side-lit strut to its axis
+    (within 1 px; the bar was > 2.5 px off), and `silhouette_candidates` of the bars as
+    found gives exactly the default's candidates."""
     cfg = StrutDetectorConfig()
     img, yc = shaded_cylinder(9.0, 70.0, background=1.0, ambient=18.0, seed=3)
     # two more struts (uniformly bright, vertical, away from the profile stations) so that
@@ -233,3 +235,9 @@ def test_partial_candidates_without_the_silhouette_refit_keep_the_bars() -> None
 
     assert abs(centre_y(horizontal(raw[1]), 120.0) - yc) > 2.5
     assert abs(centre_y(horizontal(refit[1]), 120.0) - yc) < 1.0
+    # the refit of the bars as found (`satpose bracket`'s fallback) is the same, exactly
+    later = bl.silhouette_candidates(img, raw, cfg)
+    assert later[0] is raw[0] and len(later[1]) == len(refit[1])
+    for a, b in zip(later[1], refit[1], strict=True):
+        for fa, fb in zip(astuple(a), astuple(b), strict=True):
+            np.testing.assert_array_equal(fa, fb)
