@@ -60,6 +60,7 @@ from satpose.frontend.star_images import (
     database_fov_range,
     extract_stars,
     fov_to_focal,
+    match_radius,
     radec_roll_deg,
     solve_image,
 )
@@ -124,7 +125,7 @@ def wrong_attitudes(
     R0 = reference_R(ref)
     scales = database_fov_range(band, w, h)
     cat = solver_catalogue(scales[0], scales[1], cfg.epoch_yr)
-    radius = np.maximum(cfg.match_radius_px, 3 * stars.sigma_px)
+    radius = match_radius(cfg, stars)
 
     def false_alarm(R: np.ndarray) -> float:
         prow, ppx = _predict(cat, R, cam, float(np.max(cat.mag)))

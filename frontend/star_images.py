@@ -710,6 +710,12 @@ def radec_roll_deg(R: np.ndarray) -> tuple[float, float, float]:
     return math.degrees(ra) % 360.0, math.degrees(dec), math.degrees(roll)
 
 
+def match_radius(c: StarSolveConfig, stars: ImageStars) -> np.ndarray:
+    """Per spot, the radius within which a predicted star matches it [px]:
+    ``match_radius_px`` or 3 sigma of the spot's centroid, the larger (N,)."""
+    return np.maximum(c.match_radius_px, 3 * stars.sigma_px)
+
+
 def _match(
     pred_px: np.ndarray, spots_px: np.ndarray, radius: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -852,7 +858,7 @@ def _solve_band(
         R, cam, cat.unit[rows], stars.px[idx], stars.sigma_px[idx], c.fit_distortion
     )
     mag_limit = float(np.max(cat.mag))
-    match_r = np.maximum(c.match_radius_px, 3 * stars.sigma_px)
+    match_r = match_radius(c, stars)
     pi = sj = np.zeros(0, np.int64)
     prow = np.zeros(0, np.int64)
     for _ in range(2):
@@ -870,7 +876,7 @@ def _solve_band(
         )
         pi, sj = pi[ref.inlier], sj[ref.inlier]
     elapsed = cpu()
-    verdict, fa = _verify(c, stars, prow, ppx, pi, sj, ref.R, ref.camera, cat)
+    verdict, fa = _verify(c, stars, prow, ppx, pi, sj, match_r, ref.R, ref.camera, cat)
     if verdict:
         return no_solution(f"verification failed: {verdict}", stars, elapsed)
     r = cat.unit[prow[pi]]
@@ -1029,16 +1035,17 @@ def _verify(
     ppx: np.ndarray,
     pi: np.ndarray,
     sj: np.ndarray,
+    match_r: np.ndarray,
     R: np.ndarray,
     cam: SkyCamera,
     cat: SolverCatalogue,
 ) -> tuple[str, float]:
     """('', false-alarm probability) if the predicted stars confirm the solution, else
-    (why not, the probability or 1 where not computed)."""
+    (why not, the probability or 1 where not computed). ``match_r``: the spots' match
+    radii the matches were made with (`match_radius`)."""
     m = int(pi.size)
     if m < c.min_matches:
         return f"{m} of {prow.size} predicted stars found (need {c.min_matches})", 1.0
-    match_r = np.maximum(c.match_radius_px, 3 * stars.sigma_px)
     fa = _false_alarm_bright(stars, ppx, cat.mag[prow], pi, match_r)
     if fa > c.max_false_alarm:
         return f"{m} of {prow.size} predicted stars found, as likely by chance (p = {fa:.1e})", fa
@@ -1084,6 +1091,7 @@ def check_attitude(
     scales = database_fov_range(fov_range, stars.width, stars.height)
     cat = solver_catalogue(scales[0], scales[1], c.epoch_yr)
     prow, ppx = _predict(cat, R, camera, float(np.max(cat.mag)))
-    pi, sj = _match(ppx, stars.px, np.maximum(c.match_radius_px, 3 * stars.sigma_px))
-    verdict, _ = _verify(c, stars, prow, ppx, pi, sj, R, camera, cat)
+    match_r = match_radius(c, stars)
+    pi, sj = _match(ppx, stars.px, match_r)
+    verdict, _ = _verify(c, stars, prow, ppx, pi, sj, match_r, R, camera, cat)
     return verdict, int(pi.size), int(prow.size)
