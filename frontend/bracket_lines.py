@@ -94,6 +94,18 @@ class StrutDetectorConfig:
             detection on a shaded cylinder measures it narrower than its silhouette).
         max_width_spread: the three struts' log width ratios may differ from their mean by at
             most this (one scale for all three).
+        taper_floor: the noise of a strut's taper (`measure_taper`) that its own scatter does
+            not show, added in quadrature (a shaded limb, the lit part of a side-lit strut and
+            the blur change a little along a strut): the spread of measured minus true tapers
+            on the bracket family's tuning seeds (docs/bracket.md, "Strut taper").
+        max_taper_chi: a strut's taper misfit counts as at most this many sigmas (a truncated
+            square: an outlying measurement, e.g. a cell line along a strut, cannot veto the
+            true pose; what tells the poses apart is the sum over struts and frames).
+        taper_min_width_px: a strut narrower than this [px] has its taper ignored: there the
+            blur merges its two edges and the measured taper is compressed (half the true one
+            at 5 px on the family's tuning seeds).
+        use_taper: weigh the struts' tapers (with a known ``strut_radius_m``); False: the
+            hypotheses are verified and weighed as before the taper was measured.
         gate_deg, gate_rel: tracking: a pose farther than ``gate_deg`` in attitude or
             ``gate_rel`` x range (+ 2 cm) in position from the predicted (or reference) pose
             is refused ("departs from the prediction").
@@ -124,6 +136,10 @@ class StrutDetectorConfig:
     max_end_chi: float = 3.0
     width_ratio_range: tuple[float, float] = (0.35, 1.8)
     max_width_spread: float = 0.35
+    taper_floor: float = 0.035
+    max_taper_chi: float = 3.0
+    taper_min_width_px: float = 8.0
+    use_taper: bool = True
     gate_deg: float = 15.0
     gate_rel: float = 0.25
     rival_deg: float = 8.0
@@ -134,7 +150,11 @@ class StrutDetectorConfig:
 
 @dataclass(frozen=True)
 class Strut:
-    """A strut candidate: centre line ``point + s * direction`` observed over ``[s0, s1]``."""
+    """A strut candidate: centre line ``point + s * direction`` observed over ``[s0, s1]``.
+
+    ``taper`` (`measure_taper`): the log ratio of its image widths at ``s = taper_span[1]``
+    and ``taper_span[0]`` with its standard deviation ``taper_sigma``; NaN: not measured.
+    """
 
     point: np.ndarray
     direction: np.ndarray
@@ -143,6 +163,9 @@ class Strut:
     support_px: float
     residual_px: float
     width_px: float = 0.0
+    taper: float = math.nan
+    taper_sigma: float = math.nan
+    taper_span: tuple[float, float] = (math.nan, math.nan)
 
     def end(self, which: int) -> np.ndarray:
         return self.point + (self.s0 if which == 0 else self.s1) * self.direction
@@ -787,7 +810,20 @@ def _verify(
         if spread > cfg.max_width_spread:
             return math.inf, f"strut widths inconsistent (log spread {spread:.2f})"
         cost += float(np.sum(((lr - mean) / (cfg.max_width_spread / 2)) ** 2))
+        for strut, (i, j) in zip(struts, ((0, 1), (0, 2), (1, 2)), strict=True):
+            if not _taper_used(strut, cfg):
+                continue
+            pred_t = predicted_taper(strut, pose, (v[i], v[j]), K, radius_m)
+            if not math.isfinite(pred_t):
+                return math.inf, "a strut's axis behind the camera"
+            e = (strut.taper - pred_t) / math.hypot(strut.taper_sigma, cfg.taper_floor)
+            cost += min(e * e, cfg.max_taper_chi**2)
     return cost, ""
+
+
+def _taper_used(strut: Strut, cfg: StrutDetectorConfig) -> bool:
+    """Whether `_verify` weighs ``strut``'s taper: measured, wide enough, and switched on."""
+    return cfg.use_taper and math.isfinite(strut.taper) and strut.width_px >= cfg.taper_min_width_px
 
 
 def _pose_distance(a: Rigid3, b: Rigid3, centre: np.ndarray | None = None) -> tuple[float, float]:
@@ -890,15 +926,18 @@ class PartialImageModel:
     as a function of the pose: ``r(T) = (z - h(T)) / sigma`` with ``h`` =
     `partial_image_quantities`, noise ``sigma_px`` per vertex coordinate, ``sigma_dir_rad``
     per strut direction and the verification's ``end_sigma_px + end_sigma_rel * length`` per
-    stub length. ``residual_and_jacobian`` is what a smoother needs to weigh the image itself
-    (not a Gaussian approximation of the pose) against the motion (`satpose.backend.labelling`):
-    near a double P3P root the likelihood of the pose is far from Gaussian."""
+    stub length; then the struts' tapers (`measure_taper`), ``(taper - predicted(T)) /
+    hypot(taper_sigma, taper_floor)``. ``residual_and_jacobian`` is what a smoother needs to
+    weigh the image itself (not a Gaussian approximation of the pose) against the motion
+    (`satpose.backend.labelling`): near a double P3P root the likelihood of the pose is far
+    from Gaussian, and the tapers are what tells those roots apart."""
 
     z: np.ndarray
     sigma: np.ndarray
     vertices: np.ndarray
     K: np.ndarray
     fraction: float
+    tapers: tuple[TaperMeasurement, ...] = ()
 
     @staticmethod
     def of(
@@ -907,30 +946,53 @@ class PartialImageModel:
         K: np.ndarray,
         fraction: float,
         config: StrutDetectorConfig,
+        struts: tuple[Strut, Strut, Strut] | None = None,
     ) -> PartialImageModel:
-        """The model of quantities ``z`` with ``config``'s noise levels."""
+        """The model of quantities ``z`` with ``config``'s noise levels, and the tapers of
+        ``struts`` (base, from P1, from P2) that `_verify` weighs."""
         zz = np.asarray(z, dtype=float)
         sig = _quantity_sigmas(
             zz, config.vertex_sigma_px, math.radians(config.direction_sigma_deg), config
         )
-        return PartialImageModel(zz, sig, np.asarray(vertices, float), np.asarray(K), fraction)
+        tapers: list[TaperMeasurement] = []
+        if struts is not None and config.strut_radius_m is not None:
+            for st, axis in zip(struts, ((0, 1), (0, 2), (1, 2)), strict=True):
+                if _taper_used(st, config):
+                    tapers.append(
+                        TaperMeasurement(
+                            value=st.taper,
+                            sigma=math.hypot(st.taper_sigma, config.taper_floor),
+                            px=np.array([st.point + s * st.direction for s in st.taper_span]),
+                            axis=axis,
+                            radius_m=config.strut_radius_m,
+                        )
+                    )
+        return PartialImageModel(
+            zz, sig, np.asarray(vertices, float), np.asarray(K), fraction, tuple(tapers)
+        )
 
     @property
     def dim(self) -> int:
-        return len(self.z)
+        return len(self.z) + len(self.tapers)
+
+    def _taper_residuals(self, pose: Rigid3) -> np.ndarray:
+        return np.array(
+            [(m.value - m.predicted(pose, self.vertices, self.K)) / m.sigma for m in self.tapers]
+        )
 
     def residual(self, pose: Rigid3) -> np.ndarray:
-        """Whitened ``(z - h(pose)) / sigma``, angles wrapped."""
+        """Whitened ``(z - h(pose)) / sigma``, angles wrapped, then the tapers'."""
         r = self.z - partial_image_quantities(
             pose, self.vertices, self.K, self.fraction, len(self.z) > 6
         )
         r[4:6] = (r[4:6] + math.pi) % (2 * math.pi) - math.pi
-        return r / self.sigma
+        return np.concatenate([r / self.sigma, self._taper_residuals(pose)])
 
     def residual_and_jacobian(self, pose: Rigid3) -> tuple[np.ndarray, np.ndarray]:
         """``r`` and ``dr/dxi`` (m x 6) for the right perturbation ``pose Exp(xi)``,
         ``xi = [rotation, translation]`` (analytic: ``dP/dxi = [-R [X]x, R]`` for a model
-        point ``X`` seen at ``P = R X + t``, through the pinhole and the quantities)."""
+        point ``X`` seen at ``P = R X + t``, through the pinhole and the quantities; the
+        tapers' by central differences, 1e-6 rad / 1e-6 m)."""
         V = self.vertices
         f = self.fraction
         X = np.array([V[0], V[1], V[2], V[0] + f * (V[2] - V[0]), V[1] + f * (V[2] - V[1])])
@@ -957,7 +1019,7 @@ class PartialImageModel:
             dd = Ju[2] - Ju[a]
             h.append(math.atan2(d[1], d[0]))
             J.append((d[0] * dd[1] - d[1] * dd[0]) / float(d @ d))
-        if self.dim > 6:
+        if len(self.z) > 6:
             for a, e in ((0, 3), (1, 4)):  # stub lengths
                 d = u[e] - u[a]
                 n = float(np.linalg.norm(d))
@@ -965,7 +1027,56 @@ class PartialImageModel:
                 J.append((d[0] * (Ju[e, 0] - Ju[a, 0]) + d[1] * (Ju[e, 1] - Ju[a, 1])) / n)
         r = self.z - np.array(h)
         r[4:6] = (r[4:6] + math.pi) % (2 * math.pi) - math.pi
-        return r / self.sigma, -np.array(J) / self.sigma[:, None]
+        r = r / self.sigma
+        Jq = -np.array(J) / self.sigma[:, None]
+        if not self.tapers:
+            return r, Jq
+        # the vertices under the pose and its 12 central-difference steps (13, 3, 3)
+        Pk = np.einsum("ij,kaj->kai", R, np.einsum("kij,aj->kai", _STEP_ROT, V) + _STEP_T[:, None])
+        Pk = Pk + t
+        rt = np.empty(len(self.tapers))
+        Jt = np.empty((len(self.tapers), 6))
+        for i, m in enumerate(self.tapers):
+            w = _widths_on_lines(
+                _silhouette_lines(Pk[:, m.axis[0]], Pk[:, m.axis[1]], m.radius_m, self.K), m.px
+            )
+            ok = np.all(Pk[:, list(m.axis), 2] > 0, axis=1) & np.all(w > 0, axis=1)
+            w = np.where(ok[:, None], w, 1.0)
+            pred = np.where(ok, np.log(w[:, 1] / w[:, 0]), 1e3)  # an end behind: push back
+            res = (m.value - pred) / m.sigma
+            rt[i] = res[0]
+            Jt[i] = (res[1:7] - res[7:13]) / (2 * _STEP)
+        return np.concatenate([r, rt]), np.vstack([Jq, Jt])
+
+
+# central-difference steps of the right perturbation ``T Exp(xi)`` for the tapers' Jacobian:
+# index 0 the pose itself, 1-6 ``+_STEP`` along each of ``xi = [rotation, translation]``,
+# 7-12 ``-_STEP`` (the rotation steps as matrices, the translation steps in the body frame)
+_STEP = 1e-6
+_STEP_XI = np.vstack([np.zeros(6), _STEP * np.eye(6), -_STEP * np.eye(6)])
+_STEP_ROT = np.array([rotvec_to_matrix(x[:3]) for x in _STEP_XI])
+_STEP_T = _STEP_XI[:, 3:]
+
+
+@dataclass(frozen=True)
+class TaperMeasurement:
+    """One strut's measured taper in `PartialImageModel`: ``value`` with its noise ``sigma``
+    (floor included), measured between the image points ``px`` (2, 2) of a strut whose axis
+    runs between the bracket vertices ``axis`` (indices into P1, P2, P5), ``radius_m``."""
+
+    value: float
+    sigma: float
+    px: np.ndarray
+    axis: tuple[int, int]
+    radius_m: float
+
+    def predicted(self, pose: Rigid3, vertices: np.ndarray, K: np.ndarray) -> float:
+        """The taper ``pose`` predicts (`taper_between`); a large value (1e3) where a ray
+        misses the posed axis in front of the camera, so a fit is pushed back."""
+        t = taper_between(
+            self.px, pose, (vertices[self.axis[0]], vertices[self.axis[1]]), K, self.radius_m
+        )
+        return t if math.isfinite(t) else 1e3
 
 
 def _skews(v: np.ndarray) -> np.ndarray:
@@ -1028,7 +1139,8 @@ def width_chi2(
     obs = BracketObservation(
         p1_px=struts[0].end(0), p2_px=struts[0].end(1), p3_px=None, p4_px=None, sigma_px=1.0
     )
-    return _verify(obs, struts, pose, geometry, K, 1.0, config.strut_radius_m, config)[0]
+    no_taper = replace(config, use_taper=False)  # the tapers are in `PartialImageModel`
+    return _verify(obs, struts, pose, geometry, K, 1.0, config.strut_radius_m, no_taper)[0]
 
 
 @dataclass(frozen=True)
@@ -1075,12 +1187,15 @@ def _weigh(
     ctr = V.mean(axis=0)
     out: list[PartialHypothesis] = []
     for (pose, det), o, st in zip(poses, obs, struts, strict=True):
-        model = PartialImageModel.of(partial_measured_quantities(o, fraction), V, K, fraction, cfg)
+        model = PartialImageModel.of(
+            partial_measured_quantities(o, fraction), V, K, fraction, cfg, st
+        )
         ref, C, chi = refine_partial_pose(pose, model)
         w = width_chi2(st, ref, geometry, K, cfg)
         if not math.isfinite(w):
             w = width_chi2(st, pose, geometry, K, cfg)  # the refinement left the width check
-        dim = (2 if fraction < 1 else 0) + (2 if cfg.strut_radius_m is not None else 0)
+        tapers = sum(_taper_used(x, cfg) for x in st) if cfg.strut_radius_m is not None else 0
+        dim = (2 if fraction < 1 else 0) + (2 if cfg.strut_radius_m is not None else 0) + tapers
         h = PartialHypothesis(pose, ref, C, chi + w, dim, model, w, det)
         range_m = float(np.linalg.norm(ref.apply(ctr[None])[0]))
         same = [
@@ -1140,6 +1255,7 @@ def quantity_hypotheses(
     fraction: float,
     config: StrutDetectorConfig | None = None,
     include: Rigid3 | None = None,
+    taper_pose: Rigid3 | None = None,
 ) -> list[PartialHypothesis]:
     """The consistent poses of measured quantities ``z`` (`partial_measured_quantities`:
     ``p1, p2``, the strut directions and, ``fraction`` < 1, the stub lengths) with the three
@@ -1148,7 +1264,9 @@ def quantity_hypotheses(
     of ``p1, p2`` and the apex (where the two strut lines meet) whose camera is on the known
     face, whose visible stub ends lie within ``max_end_chi`` sigmas of the measured ones and
     whose widths agree. ``include``: a pose tried first besides the P3P solutions (the truth,
-    for noise-free analysis). No image: for analysis and tests on projections."""
+    for noise-free analysis). ``taper_pose``: the struts' tapers are the ones this pose
+    predicts (`exact_taper`; with ``widths_px``). No image: for analysis and tests on
+    projections."""
     cfg = StrutDetectorConfig() if config is None else config
     if widths_px is None:
         cfg = replace(cfg, strut_radius_m=None)
@@ -1178,6 +1296,14 @@ def quantity_hypotheses(
         )
 
     struts = (strut(p1, p2, w[0]), strut(p1, e1, w[1]), strut(p2, e2, w[2]))
+    if taper_pose is not None and cfg.use_taper and cfg.strut_radius_m is not None:
+        axes = ((V[0], V[1]), (V[0], V[2]), (V[1], V[2]))
+        r = cfg.strut_radius_m
+        struts = (
+            exact_taper(struts[0], taper_pose, axes[0], K, r),
+            exact_taper(struts[1], taper_pose, axes[1], K, r),
+            exact_taper(struts[2], taper_pose, axes[2], K, r),
+        )
     obs = BracketObservation(p1_px=p1, p2_px=p2, p3_px=e2, p4_px=e1, sigma_px=cfg.min_sigma_px)
     rays = np.c_[np.array([p1, p2, apex]), np.ones(3)] @ np.linalg.inv(K).T
     rays = rays / rays[:, 2:3]
@@ -1230,13 +1356,14 @@ def noise_free_hypotheses(
 ) -> list[PartialHypothesis]:
     """Every pose the *exact* image of the bracket at ``pose`` admits (`quantity_hypotheses`
     of the noise-free quantities and widths; the strut widths checked when
-    ``config.strut_radius_m`` is set); the truth first (its image_chi2 is 0). What no
+    ``config.strut_radius_m`` is set, and then their tapers too); the truth first (its
+    image_chi2 is 0). What no
     detector can do better than on one frame: noise-free projections, no image."""
     cfg = StrutDetectorConfig() if config is None else config
     z = partial_image_quantities(pose, geometry.vertices_m, K, fraction)
     r = cfg.strut_radius_m
     widths = None if r is None else exact_widths(pose, geometry, K, fraction, r)
-    return quantity_hypotheses(z, widths, geometry, K, fraction, cfg, include=pose)
+    return quantity_hypotheses(z, widths, geometry, K, fraction, cfg, include=pose, taper_pose=pose)
 
 
 def _stubs_at(end: np.ndarray, base: Strut, cands: list[Strut], tol: float, n: int) -> list[Strut]:
@@ -1378,16 +1505,204 @@ def _silhouette_refit(img: np.ndarray, strut: Strut) -> Strut:
     return replace(strut, point=strut.point + shift * n, width_px=w + ext[0] + ext[1])
 
 
+def _edge_offsets(g: np.ndarray, offs: np.ndarray) -> np.ndarray:
+    """Per row of a gradient magnitude ``g`` (rows x samples at offsets ``offs``, evenly
+    spaced), the offset of its maximum, sub-sample by a parabola through its neighbours."""
+    k = np.clip(np.argmax(g, axis=1), 1, g.shape[1] - 2)
+    r = np.arange(len(g))
+    y0, y1, y2 = g[r, k - 1], g[r, k], g[r, k + 1]
+    den = y0 - 2.0 * y1 + y2
+    frac = np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0)
+    return offs[k] + np.clip(frac, -0.5, 0.5) * (offs[1] - offs[0])
+
+
+def _taper_span(strut: Strut, min_span_px: float = 12.0) -> tuple[float, float] | None:
+    """The part of ``strut`` where `measure_taper` measures its width: ``max(2 w, 4)`` px
+    clear of each end; None when shorter than ``max(min_span_px, 3 w)``."""
+    w = float(strut.width_px)
+    if not w > 0:
+        return None
+    trim = max(2.0 * w, 4.0)
+    lo, hi = strut.s0 + trim, strut.s1 - trim
+    return (lo, hi) if hi - lo >= max(min_span_px, 3.0 * w) else None
+
+
+def exact_taper(
+    strut: Strut, pose: Rigid3, ends_m: tuple[np.ndarray, np.ndarray], K: np.ndarray, r: float
+) -> Strut:
+    """``strut`` with the taper ``pose`` predicts over the span `measure_taper` would measure
+    (``taper_sigma`` 0: the floor weighs it), for noise-free analysis; unchanged (NaN) where
+    that span is too short."""
+    span = _taper_span(strut)
+    if span is None:
+        return strut
+    st = replace(strut, taper=0.0, taper_sigma=0.0, taper_span=span)
+    t = predicted_taper(st, pose, ends_m, K, r)
+    return replace(st, taper=t) if math.isfinite(t) else strut
+
+
+def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) -> Strut:
+    """``strut`` with its ``taper`` measured: how its image width changes along it.
+
+    A strut is a cylinder of one radius, so its image narrows with depth: the width at two
+    points of its centre line is in the inverse ratio of their depths (`predicted_taper`), a
+    ratio that tells apart poses which put the same vertices on the same pixels but tilt the
+    struts differently (the P3P solutions of the paper's view). Both edges are located on a
+    cross profile at every pixel along the strut (the largest gradient magnitude within
+    ``max(1.5, w / 4)`` px of each edge of the bar, ``w`` its width, sub-pixel by a parabola;
+    no polarity: after `_silhouette_refit` an edge may be a shaded limb), ``max(2 w, 4)`` px
+    clear of each end (where another strut or the array crosses it), and the widths are
+    fitted by a straight line in ``s`` (least squares, then again without the points beyond
+    3 robust standard deviations). What changes the edges' offset from the silhouette
+    (shading, a lit part only, blur) is nearly the same all along a strut, so the *ratio*
+    keeps the depth's. ``taper_sigma`` comes from the scatter of the widths about the line;
+    NaN when the clear span is shorter than ``max(min_span_px, 3 w)`` or the fit fails."""
+    strut = replace(strut, taper=math.nan, taper_sigma=math.nan, taper_span=(math.nan, math.nan))
+    span = _taper_span(strut, min_span_px)
+    if span is None:
+        return strut
+    w = float(strut.width_px)
+    ss = np.arange(span[0], span[1] + 1e-9, 1.0)
+    win = max(1.5, 0.25 * w)
+    offs = np.arange(-win, win + 1e-9, 0.25)
+    n = np.array([-strut.direction[1], strut.direction[0]])
+    centre = strut.point[None, :] + ss[:, None] * strut.direction[None, :]
+    edges = []
+    for sign in (-1.0, 1.0):
+        o = sign * 0.5 * w + offs
+        P = centre[:, None, :] + o[None, :, None] * n[None, None, :]
+        rows = cv2.remap(
+            blurred, P[..., 0].astype(np.float32), P[..., 1].astype(np.float32), cv2.INTER_CUBIC
+        )
+        g = np.abs(np.gradient(rows.astype(np.float64), axis=1))
+        edges.append(sign * 0.5 * w + _edge_offsets(g, offs))
+    width = edges[1] - edges[0]
+    keep = width > 0.25 * w
+    for it in range(3):
+        if int(keep.sum()) < max(8, len(ss) // 2):
+            return strut
+        x = ss[keep] - ss[keep].mean()
+        A = np.stack([np.ones_like(x), x], axis=1)
+        coef, *_ = np.linalg.lstsq(A, width[keep], rcond=None)
+        res = width - (coef[0] + coef[1] * (ss - ss[keep].mean()))
+        if it == 2:
+            break
+        mad = 1.4826 * float(np.median(np.abs(res[keep])))
+        keep = keep & (np.abs(res) <= max(3.0 * mad, 0.05))
+    m = len(x)
+    sd = float(np.sqrt(np.sum(res[keep] ** 2) / max(m - 2, 1)))
+    ends = coef[0] + coef[1] * (np.array([ss[keep].min(), ss[keep].max()]) - ss[keep].mean())
+    if not np.all(ends > 0):
+        return strut
+    sxx = float(x @ x)
+    span = float(ss[keep].max() - ss[keep].min())
+    # var of the slope sd^2 / sxx; the log ratio is slope x span / mean width
+    sigma = sd / math.sqrt(max(sxx, 1e-12)) * span / float(coef[0])
+    return replace(
+        strut,
+        taper=float(math.log(ends[1] / ends[0])),
+        taper_sigma=sigma,
+        taper_span=(float(ss[keep].min()), float(ss[keep].max())),
+    )
+
+
+def silhouette_width_px(
+    point: np.ndarray, axis_point: np.ndarray, axis_dir: np.ndarray, radius_m: float, K: np.ndarray
+) -> float:
+    """The exact image width [px] at image ``point`` of a cylinder of ``radius_m`` whose axis
+    passes through ``axis_point`` along ``axis_dir`` (camera frame): the sum of the distances
+    from ``point`` to the images of its two silhouette lines, the tangent planes through the
+    camera centre parallel to the axis (``m . Q = +-r``, ``Q`` the axis point nearest the
+    centre). NaN when the camera is inside the cylinder."""
+    a = np.asarray(axis_dir, dtype=float)
+    a = a / np.linalg.norm(a)
+    A = np.asarray(axis_point, dtype=float)
+    Q = A - (A @ a) * a
+    d = float(np.linalg.norm(Q))
+    if d <= radius_m:
+        return math.nan
+    e1 = Q / d
+    e2 = np.cross(a, e1)
+    c = radius_m / d
+    s = math.sqrt(1.0 - c * c)
+    K_invT = np.linalg.inv(K).T
+    x = np.array([point[0], point[1], 1.0])
+    out = 0.0
+    for m in (c * e1 + s * e2, c * e1 - s * e2):
+        line = K_invT @ m
+        out += abs(float(line @ x)) / math.hypot(line[0], line[1])
+    return out
+
+
+def _silhouette_lines(P0: np.ndarray, P1: np.ndarray, r: float, K: np.ndarray) -> np.ndarray:
+    """The image lines (..., 2, 3) of the two silhouette lines of cylinders of radius ``r``
+    whose axes run through ``P0`` and ``P1`` (..., 3), camera frame: the tangent planes
+    through the camera centre parallel to the axis (`silhouette_width_px`); NaN where the
+    centre is inside a cylinder."""
+    a = P1 - P0
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    Q = P0 - np.sum(P0 * a, axis=-1, keepdims=True) * a
+    d = np.linalg.norm(Q, axis=-1, keepdims=True)
+    e1 = Q / d
+    e2 = np.cross(a, e1)
+    c = r / d
+    s = np.sqrt(np.where(c < 1.0, 1.0 - c * c, np.nan))
+    m = np.stack([c * e1 + s * e2, c * e1 - s * e2], axis=-2)
+    return m @ np.linalg.inv(K)  # l = K^-T m, as rows
+
+
+def _widths_on_lines(lines: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Image widths (..., n) at the points ``px`` (n, 2) between each pair of ``lines``
+    (..., 2, 3): the sum of the distances to the two."""
+    x = np.c_[np.asarray(px, dtype=float), np.ones(len(px))]
+    dist = np.abs(lines @ x.T) / np.linalg.norm(lines[..., :2], axis=-1)[..., None]
+    return dist.sum(axis=-2)
+
+
+def taper_between(
+    px: np.ndarray, pose: Rigid3, ends_m: tuple[np.ndarray, np.ndarray], K: np.ndarray, r: float
+) -> float:
+    """The log ratio of a posed strut's exact silhouette widths (`silhouette_width_px`) at
+    the image points ``px[1]`` and ``px[0]``, its axis running from ``ends_m[0]`` to
+    ``ends_m[1]`` (target frame), radius ``r``. NaN when an end lies behind the camera or
+    the camera inside the cylinder."""
+    P = pose.apply(np.asarray(ends_m, dtype=float))
+    if not np.all(P[:, 2] > 0):
+        return math.nan
+    w = _widths_on_lines(_silhouette_lines(P[0], P[1], r, K), px)
+    if not (np.all(np.isfinite(w)) and np.all(w > 0)):
+        return math.nan
+    return float(math.log(w[1] / w[0]))
+
+
+def predicted_taper(
+    strut: Strut, pose: Rigid3, ends_m: tuple[np.ndarray, np.ndarray], K: np.ndarray, r: float
+) -> float:
+    """The taper (`measure_taper`) that ``pose`` predicts for ``strut``, whose axis runs from
+    ``ends_m[0]`` to ``ends_m[1]`` (target frame): `taper_between` the image points
+    ``taper_span`` of its centre line. NaN when unmeasured or a ray misses the axis."""
+    if not math.isfinite(strut.taper):
+        return math.nan
+    px = np.array([strut.point + s * strut.direction for s in strut.taper_span])
+    return taper_between(px, pose, ends_m, K, r)
+
+
 def _scaled(gray: np.ndarray) -> np.ndarray:
     """A grey image as float32 scaled to a maximum of 255 (what the bar finder measures)."""
     return gray.astype(np.float32) * (255.0 / float(gray.max()))
 
 
 def _refit_all(scaled: np.ndarray, cands: list[Strut], config: StrutDetectorConfig) -> list[Strut]:
-    """`_silhouette_refit` of every candidate on the blurred ``scaled`` image (their order
-    kept: the refit changes no support)."""
+    """`_silhouette_refit` of every candidate on the blurred ``scaled`` image, then its taper
+    measured (`measure_taper`; their order kept: neither changes the support)."""
     blurred = cv2.GaussianBlur(scaled, (0, 0), config.blur_sigma_px)
-    return [_silhouette_refit(blurred, c) for c in cands]
+    return [measure_taper(blurred, _silhouette_refit(blurred, c)) for c in cands]
+
+
+def _tapered(scaled: np.ndarray, cands: list[Strut], config: StrutDetectorConfig) -> list[Strut]:
+    """Every candidate with its taper measured on the blurred ``scaled`` image."""
+    blurred = cv2.GaussianBlur(scaled, (0, 0), config.blur_sigma_px)
+    return [measure_taper(blurred, c) for c in cands]
 
 
 def silhouette_candidates(
@@ -1418,8 +1733,7 @@ def partial_candidates(
         return StrutDetection(None, None, seg, reason=f"only {len(seg)} line segments")
     scaled = _scaled(img)
     cands = sorted(_merge(_bars(scaled, seg, config), config), key=lambda c: -c.support_px)
-    if silhouette:
-        cands = _refit_all(scaled, cands, config)
+    cands = _refit_all(scaled, cands, config) if silhouette else _tapered(scaled, cands, config)
     if len(cands) < 3:
         return StrutDetection(
             None, None, seg, tuple(cands), reason=f"{len(cands)} strut candidates (need 3)"
