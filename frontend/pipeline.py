@@ -221,7 +221,15 @@ class StereoFrontend:
             cam: Undistorter(calibration.camera(cam), cfg.preprocess) for cam in ("left", "right")
         }
         det = detector or (lambda gray8, roi: detect_ellipses(gray8, cfg.ellipses, roi))
-        self.rings = {cam: RingTracker(Camera(cam), det, cfg.ring) for cam in ("left", "right")}
+        mixed_cfg = replace(cfg.ellipses, mixed_polarity=True)
+        mixed = (
+            (lambda gray8, roi: detect_ellipses(gray8, mixed_cfg, roi))
+            if detector is None and cfg.ring.mixed_acquisition and not cfg.ellipses.mixed_polarity
+            else None
+        )
+        self.rings = {
+            cam: RingTracker(Camera(cam), det, cfg.ring, mixed) for cam in ("left", "right")
+        }
         self.panels = {
             cam: PanelTracker(cfg.corners, cfg.components, cfg.panel_tracking)
             for cam in ("left", "right")
@@ -461,6 +469,19 @@ class StereoFrontend:
             for cam in windowed:
                 options[cam] = self.rings[cam].acquire(imgs[cam])
             circles, chosen, last_error = self._pair(options, imgs)
+        if not circles and acquired:
+            # no consistent ring of one polarity: a rim whose edge changes sign along the
+            # perimeter (sunlit foil on one side, space or shadow on the other) closes only
+            # when arcs of both signs are linked (`RingConfig.mixed_acquisition`)
+            more = False
+            for cam in options:
+                if self.rings[cam].track is None:
+                    new = self.rings[cam].acquire(imgs[cam], mixed=True, known=options[cam])
+                    options[cam] = [*options[cam], *new]
+                    more = more or bool(new)
+            if more:
+                circles, chosen, error = self._pair(options, imgs)
+                last_error = error or last_error
         if not circles:
             if last_error is not None:
                 failures.append(f"ring: {last_error}")
