@@ -28,6 +28,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
@@ -36,7 +37,7 @@ from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix
 from satpose.datasets.sequence import Calibration, Frame
 from satpose.frontend.conics import ConicError, Ellipse
 from satpose.frontend.edges import smoothed
-from satpose.frontend.ellipses import EllipseDetectorConfig, detect_ellipses
+from satpose.frontend.ellipses import DetectedEllipse, EllipseDetectorConfig, detect_ellipses
 from satpose.frontend.landmarks import LandmarkConfig, LandmarkTracker
 from satpose.frontend.measurements import (
     Camera,
@@ -63,7 +64,7 @@ from satpose.frontend.rim import (
     fit_outer_rim,
     projected_observation,
 )
-from satpose.frontend.ring import Detector, RingConfig, RingTracker
+from satpose.frontend.ring import Detector, RingConfig, RingTracker, contrast_scale
 from satpose.frontend.ring_choice import front_choice, transferred_ellipse
 from satpose.frontend.ring_outline import OutlineConfig, OutlineFit, fit_ring_outline
 from satpose.frontend.stereo import (
@@ -221,10 +222,9 @@ class StereoFrontend:
             cam: Undistorter(calibration.camera(cam), cfg.preprocess) for cam in ("left", "right")
         }
         det = detector or (lambda gray8, roi: detect_ellipses(gray8, cfg.ellipses, roi))
-        mixed_cfg = replace(cfg.ellipses, mixed_polarity=True)
         mixed = (
-            (lambda gray8, roi: detect_ellipses(gray8, mixed_cfg, roi))
-            if detector is None and cfg.ring.mixed_acquisition and not cfg.ellipses.mixed_polarity
+            partial(_mixed_detection, config=cfg.ellipses, bright_level=cfg.ring.mixed_bright_level)
+            if detector is None and cfg.ring.mixed_acquisition
             else None
         )
         self.rings = {
@@ -846,6 +846,24 @@ class StereoFrontend:
                 outliers = {f.track_id for f, ok in zip(mapped, inliers, strict=True) if not ok}
                 feats = [f for f in feats if f.track_id not in outliers]
         return feats
+
+
+def _mixed_detection(
+    gray8: np.ndarray,
+    roi: tuple[int, int, int, int] | None,
+    config: EllipseDetectorConfig,
+    bright_level: float,
+) -> list[DetectedEllipse]:
+    """The ring's fallback detection (`RingConfig.mixed_acquisition`): arcs of either polarity
+    linked, Canny thresholds scaled to the image's contrast (`contrast_scale`)."""
+    k = contrast_scale(gray8, bright_level)
+    cfg = replace(
+        config,
+        mixed_polarity=True,
+        canny_low=config.canny_low * k,
+        canny_high=config.canny_high * k,
+    )
+    return detect_ellipses(gray8, cfg, roi)
 
 
 def _inflate(circ: Circle3D, cfg: StereoRingConfig, rig: StereoRig) -> Circle3D:

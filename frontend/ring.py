@@ -122,6 +122,11 @@ class RingConfig:
             ``mixed_detector``). A rim between sunlit foil and black space or shadow is
             darker than its surroundings on one side and brighter on the other: its outer
             edge changes sign along the perimeter, and one-polarity arcs never close it.
+        mixed_bright_level: the mixed pass also scales the detector's Canny thresholds
+            (absolute, grey levels per px) by the image's bright level (its 99th percentile,
+            grey levels of 255) over this, when it is lower, down to a fifth: a dim scene's
+            rim (10 grey levels on black under a grazing sun) has gradients below the
+            absolute thresholds, and the thresholds follow the image's contrast instead.
     """
 
     track_points: int = 16
@@ -155,12 +160,15 @@ class RingConfig:
     face_rise: float | None = None
     face_depth_px: float = 3.0
     mixed_acquisition: bool = True
+    mixed_bright_level: float = 128.0
 
     def __post_init__(self) -> None:
         if self.face_rise is not None and not self.face_rise > 0:
             raise ValueError(f"ring.face_rise must be > 0 or null, got {self.face_rise}")
         if not self.face_depth_px >= 2.0:
             raise ValueError(f"ring.face_depth_px must be >= 2, got {self.face_depth_px}")
+        if not (math.isfinite(self.mixed_bright_level) and self.mixed_bright_level > 0):
+            raise ValueError(f"ring.mixed_bright_level must be > 0, got {self.mixed_bright_level}")
 
 
 @dataclass
@@ -186,6 +194,13 @@ def inside_dominance(
     vals = sample_image(image_s, both[:, 0], both[:, 1], "linear")
     step = vals[:n] - vals[n:]
     return float(np.mean((polarity * step if polarity != 0 else np.abs(step)) > 0.01))
+
+
+def contrast_scale(gray8: np.ndarray, bright_level: float, floor: float = 0.2) -> float:
+    """Factor in [``floor``, 1] for absolute edge thresholds on a uint8 image: its bright
+    level (99th percentile, grey levels) over ``bright_level`` when lower, else 1."""
+    level = float(np.percentile(gray8, 99))
+    return float(np.clip(level / bright_level, floor, 1.0))
 
 
 def face_rise(
@@ -394,9 +409,7 @@ class RingTracker:
             return []
         image_s = smoothed(image.gray, cfg.edges)
         out: list[tuple[EllipseObservation, int]] = []
-        found = self._plausible(
-            image, None, image_s, None, self.mixed_detector if mixed else None
-        )
+        found = self._plausible(image, None, image_s, None, self.mixed_detector if mixed else None)
         for e, pol in found:
             self._add_candidates(image, image_s, e, pol, out)
             if len(out) >= max_candidates:
