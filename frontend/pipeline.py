@@ -461,8 +461,6 @@ class StereoFrontend:
                     windowed.append(cam)
             if not options[cam]:
                 options[cam] = tracker.acquire(imgs[cam])
-            if not options[cam]:
-                failures.append(f"ring ({cam}): no ring-like ellipse found")
         acquired = any(self.rings[cam].track is None for cam in options)
         circles, chosen, last_error = self._pair(options, imgs if acquired else None)
         if not circles and windowed:  # not near the prediction: the whole image after all
@@ -483,6 +481,9 @@ class StereoFrontend:
                 circles, chosen, error = self._pair(options, imgs)
                 last_error = error or last_error
         if not circles:
+            failures += [
+                f"ring ({cam}): no ring-like ellipse found" for cam, o in options.items() if not o
+            ]
             if last_error is not None:
                 failures.append(f"ring: {last_error}")
             for tracker in self.rings.values():
