@@ -20,7 +20,7 @@ import pytest
 from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.geometry import Rigid3
 from satpose.datasets.sequence import Calibration
-from satpose.frontend.conics import Ellipse, sampson_distance
+from satpose.frontend.conics import Ellipse, conic_to_ellipse, sampson_distance
 from satpose.frontend.edges import smoothed
 from satpose.frontend.ellipses import EllipseDetectorConfig, detect_ellipses
 from satpose.frontend.measurements import Camera
@@ -28,7 +28,7 @@ from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
 from satpose.frontend.preprocess import PreparedImage, Undistorter
 from satpose.frontend.rim import rim_samples
 from satpose.frontend.ring import RingConfig, RingTracker, contrast_scale, inside_dominance
-from satpose.frontend.stereo import Circle3D
+from satpose.frontend.stereo import Circle3D, circle_conic
 
 W, H, F = 640, 480, 800.0
 K = np.array([[F, 0, W / 2 - 0.5], [0, F, H / 2 - 0.5], [0, 0, 1.0]])
@@ -166,11 +166,49 @@ def test_mixed_pass_measures_the_rim_with_both_signs() -> None:
         return detect_ellipses(gray8, EllipseDetectorConfig(mixed_polarity=True), roi)
 
     assert RingTracker(Camera.LEFT, detector).acquire(image, mixed=True) == []
-    found = RingTracker(Camera.LEFT, detector, mixed_detector=detector).acquire(
-        image, mixed=True
-    )
+    found = RingTracker(Camera.LEFT, detector, mixed_detector=detector).acquire(image, mixed=True)
     best = min(found, key=lambda c: float(np.hypot(*(c[0].center_px - truth.center))))
     obs, pol = best
     assert pol == 0
     assert float(np.hypot(*(obs.center_px - truth.center))) < 0.15
     assert np.abs(obs.axes_px - [truth.a, truth.b]).max() < 0.3
+
+
+def _mixed_stereo(T: Rigid3, seed: int) -> np.ndarray:
+    """The rim of `_rim` as a grey face (0.35, to 0.28 m) with sunlit foil (0.85) beyond its
+    outer edge on the left of the image and black (0.02) on the right, a hole (0.3) barely
+    darker than the face; noise 1 grey level."""
+    rim = _rim()
+    img = np.full((H * S, W * S), 0.02, np.float32)
+    c = (rim.center @ T.R.T + T.t) @ K.T
+    img[:, : int((c[0] / c[2] + 0.5) * S)] = 0.85
+    cv2.fillPoly(img, [_poly(T, rim)], 0.35, lineType=cv2.LINE_8, shift=4)
+    cv2.fillPoly(img, [_poly(T, replace(rim, radius=0.28))], 0.3, lineType=cv2.LINE_8, shift=4)
+    return _finish(img, seed, 1 / 255)
+
+
+def test_one_edge_locator_in_both_cameras() -> None:
+    """A pair whose left edge was located with both signs (polarity 0) and right edge with
+    one sign is refined with both signs in the right camera too (`_one_locator`): both
+    polarities 0 after, the circle still the rim (radius within 3 mm, centre within 1 cm:
+    noise 1 grey level, blur 0.6 px); a pair of one locator is left as it is."""
+    fe = StereoFrontend(_calibration())
+    rim = _rim()
+    prepared, chosen, mixed = {}, {}, {}
+    for cam, T, pol, seed in (
+        ("left", Rigid3.identity(), 0, 5),
+        ("right", RIGHT_FROM_LEFT, +1, 6),
+    ):
+        prepared[cam] = fe.undistort[cam](_mixed_stereo(T, seed))
+        true_e = conic_to_ellipse(circle_conic(K, T, rim.center, rim.normal, rim.radius))
+        got = fe.rings[cam].refine_at(prepared[cam], true_e, pol)
+        assert got is not None and got[1] == pol
+        chosen[cam] = got
+        mixed[cam] = fe.rings[cam].refine_at(prepared[cam], true_e, 0)
+    circles = fe._circles(chosen["left"][0], chosen["right"][0])
+    _, kept = fe._one_locator(circles, mixed, prepared)
+    assert kept is mixed  # one locator already
+    circles, both = fe._one_locator(circles, chosen, prepared)
+    assert both["left"][1] == 0 and both["right"][1] == 0
+    assert abs(circles[0].radius - rim.radius) < 0.003
+    assert float(np.linalg.norm(circles[0].center - rim.center)) < 0.01
