@@ -437,7 +437,9 @@ class StereoFrontend:
         ``gap`` frames (``outlines``: `_gap_outlines`) a camera looks where the ring is
         predicted (`RingTracker.reacquire`) instead of following its track; it acquires
         over the whole image when that finds nothing, or when what it found forms no
-        circle."""
+        circle. When acquisition finds no consistent circle, a fallback pass of either
+        polarity with contrast-relative thresholds adds candidates (`RingTracker.acquire`
+        with ``mixed=True``, `RingConfig.mixed_acquisition`)."""
         options: dict[str, list[tuple[EllipseObservation, int]]] = {}
         windowed = []
         for cam in ("left", "right"):
