@@ -212,3 +212,9 @@ def test_one_edge_locator_in_both_cameras() -> None:
     assert both["left"][1] == 0 and both["right"][1] == 0
     assert abs(circles[0].radius - rim.radius) < 0.003
     assert float(np.linalg.norm(circles[0].center - rim.center)) < 0.01
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, math.nan, math.inf])
+def test_bright_level_must_be_positive_and_finite(bad: float) -> None:
+    with pytest.raises(ValueError, match="mixed_bright_level"):
+        RingConfig(mixed_bright_level=bad)
