@@ -299,14 +299,16 @@ class RingTracker:
         roi: tuple[int, int, int, int] | None,
         image_s: np.ndarray,
         polarity: int | None,
-        detector: Detector | None = None,
+        mixed: bool = False,
     ) -> list[tuple[Ellipse, int]]:
-        """Detected ellipses (by ``detector``, default the tracker's) that could be the outer
-        front edge with the rim's polarity (``+1`` brighter inside, ``-1`` darker; ``None``:
-        whichever dominates), largest first."""
+        """Detected ellipses that could be the outer front edge with the rim's polarity
+        (``+1`` brighter inside, ``-1`` darker; ``None``: whichever dominates), largest first.
+        ``mixed``: detected by the ``mixed_detector``, and where neither sign dominates, an
+        edge of either sign all round is ring-like too (polarity 0)."""
         cfg = self.config
         out = []
-        for c in (detector or self.detector)(image.gray8, roi):
+        detector = self.mixed_detector if mixed and self.mixed_detector else self.detector
+        for c in detector(image.gray8, roi):
             e = c.ellipse
             if c.support < cfg.min_candidate_support:
                 continue
@@ -314,7 +316,7 @@ class RingTracker:
                 continue
             pols = (polarity,) if polarity is not None else (+1, -1)
             dom, pol = max((inside_dominance(image_s, e, p), p) for p in pols)
-            if dom < cfg.min_bright_inside and detector is not None and polarity is None:
+            if dom < cfg.min_bright_inside and mixed and polarity is None:
                 # the mixed pass: an edge all round whose sign changes along the perimeter
                 dom, pol = inside_dominance(image_s, e, 0), 0
             if dom < cfg.min_bright_inside:
@@ -409,7 +411,7 @@ class RingTracker:
             return []
         image_s = smoothed(image.gray, cfg.edges)
         out: list[tuple[EllipseObservation, int]] = []
-        found = self._plausible(image, None, image_s, None, self.mixed_detector if mixed else None)
+        found = self._plausible(image, None, image_s, None, mixed)
         for e, pol in found:
             self._add_candidates(image, image_s, e, pol, out)
             if len(out) >= max_candidates:
