@@ -4,6 +4,8 @@
     python benchmarks/ring_diagnosis.py --seeds 0-7 --label after              # the default
     python benchmarks/ring_diagnosis.py --seeds 0-7 --label face_after_0-7 --face-rise 0.3
                                                     # the rim-face check (docs/frontend.md)
+    python benchmarks/ring_diagnosis.py --seeds 8,9,12,13,15,16,18,19,20,21,22,23,25,28,29,30 \
+        --frames 6 --label sunacq_before --no-mixed  # without the fallback acquisition pass
 
 Runs the frontend alone (no smoother) on each tuning seed's render and, per frame, names the
 ring curve the reported ellipses follow: the candidate curve of the true target (projected
@@ -258,6 +260,7 @@ def markdown(rows: list[dict[str, Any]], args: argparse.Namespace, minutes: floa
         + (" --outline" if args.outline else "")
         + (" --largest" if args.largest else "")
         + (f" --face-rise {args.face_rise}" if args.face_rise is not None else "")
+        + (" --no-mixed" if args.no_mixed else "")
     )
     lines = [
         f"# What the frontend measures as the ring: tuning seeds ({args.label})",
@@ -355,6 +358,11 @@ def main() -> None:
         default=None,
         help="ring.face_rise (the rim-face check; default: the config's)",
     )
+    parser.add_argument(
+        "--no-mixed",
+        action="store_true",
+        help="ring.mixed_acquisition: false (no fallback pass of either polarity)",
+    )
     parser.add_argument("--label", default="current", help="names the output page")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
@@ -365,6 +373,8 @@ def main() -> None:
         cfg = replace(cfg, stereo_ring=replace(cfg.stereo_ring, behind_sigma=None))
     if args.face_rise is not None:
         cfg = replace(cfg, ring=replace(cfg.ring, face_rise=args.face_rise))
+    if args.no_mixed:
+        cfg = replace(cfg, ring=replace(cfg.ring, mixed_acquisition=False))
     start = time.perf_counter()
     rows = [r for seed in _seeds(args.seeds) for r in diagnose(seed, args, cfg)]
     minutes = (time.perf_counter() - start) / 60.0

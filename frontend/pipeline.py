@@ -28,6 +28,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
@@ -36,7 +37,7 @@ from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix
 from satpose.datasets.sequence import Calibration, Frame
 from satpose.frontend.conics import ConicError, Ellipse
 from satpose.frontend.edges import smoothed
-from satpose.frontend.ellipses import EllipseDetectorConfig, detect_ellipses
+from satpose.frontend.ellipses import DetectedEllipse, EllipseDetectorConfig, detect_ellipses
 from satpose.frontend.landmarks import LandmarkConfig, LandmarkTracker
 from satpose.frontend.measurements import (
     Camera,
@@ -63,7 +64,7 @@ from satpose.frontend.rim import (
     fit_outer_rim,
     projected_observation,
 )
-from satpose.frontend.ring import Detector, RingConfig, RingTracker
+from satpose.frontend.ring import Detector, RingConfig, RingTracker, contrast_scale
 from satpose.frontend.ring_choice import front_choice, transferred_ellipse
 from satpose.frontend.ring_outline import OutlineConfig, OutlineFit, fit_ring_outline
 from satpose.frontend.stereo import (
@@ -221,7 +222,14 @@ class StereoFrontend:
             cam: Undistorter(calibration.camera(cam), cfg.preprocess) for cam in ("left", "right")
         }
         det = detector or (lambda gray8, roi: detect_ellipses(gray8, cfg.ellipses, roi))
-        self.rings = {cam: RingTracker(Camera(cam), det, cfg.ring) for cam in ("left", "right")}
+        mixed = (
+            partial(_mixed_detection, config=cfg.ellipses, bright_level=cfg.ring.mixed_bright_level)
+            if detector is None and cfg.ring.mixed_acquisition
+            else None
+        )
+        self.rings = {
+            cam: RingTracker(Camera(cam), det, cfg.ring, mixed) for cam in ("left", "right")
+        }
         self.panels = {
             cam: PanelTracker(cfg.corners, cfg.components, cfg.panel_tracking)
             for cam in ("left", "right")
@@ -429,7 +437,9 @@ class StereoFrontend:
         ``gap`` frames (``outlines``: `_gap_outlines`) a camera looks where the ring is
         predicted (`RingTracker.reacquire`) instead of following its track; it acquires
         over the whole image when that finds nothing, or when what it found forms no
-        circle."""
+        circle. When acquisition finds no consistent circle, a fallback pass of either
+        polarity with contrast-relative thresholds adds candidates (`RingTracker.acquire`
+        with ``mixed=True``, `RingConfig.mixed_acquisition`)."""
         options: dict[str, list[tuple[EllipseObservation, int]]] = {}
         windowed = []
         for cam in ("left", "right"):
@@ -453,15 +463,31 @@ class StereoFrontend:
                     windowed.append(cam)
             if not options[cam]:
                 options[cam] = tracker.acquire(imgs[cam])
-            if not options[cam]:
-                failures.append(f"ring ({cam}): no ring-like ellipse found")
         acquired = any(self.rings[cam].track is None for cam in options)
         circles, chosen, last_error = self._pair(options, imgs if acquired else None)
         if not circles and windowed:  # not near the prediction: the whole image after all
             for cam in windowed:
                 options[cam] = self.rings[cam].acquire(imgs[cam])
             circles, chosen, last_error = self._pair(options, imgs)
+        if not circles and acquired:
+            # no consistent ring of one polarity: a rim whose edge changes sign along the
+            # perimeter (sunlit foil on one side, space or shadow on the other) closes only
+            # when arcs of both signs are linked (`RingConfig.mixed_acquisition`)
+            more = False
+            for cam in options:
+                if self.rings[cam].track is None:
+                    new = self.rings[cam].acquire(imgs[cam], mixed=True, known=options[cam])
+                    options[cam] = [*options[cam], *new]
+                    more = more or bool(new)
+            if more:
+                circles, chosen, error = self._pair(options, imgs)
+                last_error = error or last_error
+                if circles:
+                    circles, chosen = self._one_locator(circles, chosen, imgs)
         if not circles:
+            failures += [
+                f"ring ({cam}): no ring-like ellipse found" for cam, o in options.items() if not o
+            ]
             if last_error is not None:
                 failures.append(f"ring: {last_error}")
             for tracker in self.rings.values():
@@ -520,6 +546,33 @@ class StereoFrontend:
             k = front_choice([f[0][0] for f in found], cfg.behind_sigma)
             return found[k][0], found[k][1], None
         return found[0][0], found[0][1], None
+
+    def _one_locator(
+        self,
+        circles: list[Circle3D],
+        chosen: dict[str, tuple[EllipseObservation, int]],
+        imgs: dict[str, PreparedImage],
+    ) -> tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]:
+        """A pair whose edges one camera locates with both signs (polarity 0) and the other
+        with one sign, refined with both signs in both cameras: the ring's depth is in the
+        disparity of its edges, and two edge locators can place one edge a few tenths of a
+        pixel apart (tuning seed 2: the ring 1-5 cm too close over ten frames until both
+        cameras used one). Kept as it was if the other camera finds no such edge or the pair
+        is then no consistent circle."""
+        pols = {cam: pol for cam, (_, pol) in chosen.items()}
+        if (pols["left"] == 0) == (pols["right"] == 0):
+            return circles, chosen
+        cam = "left" if pols["left"] != 0 else "right"
+        o = chosen[cam][0]
+        e = Ellipse.from_params([*o.center_px, *o.axes_px, o.angle_rad])
+        again = self.rings[cam].refine_at(imgs[cam], e, 0)
+        if again is None:
+            return circles, chosen
+        pair = {**chosen, cam: again}
+        try:
+            return self._circles(pair["left"][0], pair["right"][0]), pair
+        except (GeometryFailure, ConicError, np.linalg.LinAlgError):
+            return circles, chosen
 
     def _transferred(
         self,
@@ -825,6 +878,24 @@ class StereoFrontend:
                 outliers = {f.track_id for f, ok in zip(mapped, inliers, strict=True) if not ok}
                 feats = [f for f in feats if f.track_id not in outliers]
         return feats
+
+
+def _mixed_detection(
+    gray8: np.ndarray,
+    roi: tuple[int, int, int, int] | None,
+    config: EllipseDetectorConfig,
+    bright_level: float,
+) -> list[DetectedEllipse]:
+    """The ring's fallback detection (`RingConfig.mixed_acquisition`): arcs of either polarity
+    linked, Canny thresholds scaled to the image's contrast (`contrast_scale`)."""
+    k = contrast_scale(gray8, bright_level)
+    cfg = replace(
+        config,
+        mixed_polarity=True,
+        canny_low=config.canny_low * k,
+        canny_high=config.canny_high * k,
+    )
+    return detect_ellipses(gray8, cfg, roi)
 
 
 def _inflate(circ: Circle3D, cfg: StereoRingConfig, rig: StereoRig) -> Circle3D:

@@ -116,6 +116,17 @@ class RingConfig:
             left out of the fit. None: no check.
         face_depth_px: how far inside each edge point the rim face is sampled (every px
             from 2 px on): past the widest band beside the rim that the check should see.
+        mixed_acquisition: when the candidates of one polarity make no stereo-consistent
+            ring, acquisition runs the detector once more linking arcs of either polarity
+            (`acquire` with ``mixed=True``; the caller passes the tracker a
+            ``mixed_detector``). A rim between sunlit foil and black space or shadow is
+            darker than its surroundings on one side and brighter on the other: its outer
+            edge changes sign along the perimeter, and one-polarity arcs never close it.
+        mixed_bright_level: the mixed pass also scales the detector's Canny thresholds
+            (absolute, grey levels per px) by the image's bright level (its 99th percentile,
+            grey levels of 255) over this, when it is lower, down to a fifth: a dim scene's
+            rim (10 grey levels on black under a grazing sun) has gradients below the
+            absolute thresholds, and the thresholds follow the image's contrast instead.
     """
 
     track_points: int = 16
@@ -148,12 +159,16 @@ class RingConfig:
     gap_max_area: float = 0.5
     face_rise: float | None = None
     face_depth_px: float = 3.0
+    mixed_acquisition: bool = True
+    mixed_bright_level: float = 128.0
 
     def __post_init__(self) -> None:
         if self.face_rise is not None and not self.face_rise > 0:
             raise ValueError(f"ring.face_rise must be > 0 or null, got {self.face_rise}")
         if not self.face_depth_px >= 2.0:
             raise ValueError(f"ring.face_depth_px must be >= 2, got {self.face_depth_px}")
+        if not (math.isfinite(self.mixed_bright_level) and self.mixed_bright_level > 0):
+            raise ValueError(f"ring.mixed_bright_level must be > 0, got {self.mixed_bright_level}")
 
 
 @dataclass
@@ -171,12 +186,21 @@ def inside_dominance(
     image_s: np.ndarray, e: Ellipse, polarity: int, n: int = 72, band_px: float = 2.5
 ) -> float:
     """Fraction of the perimeter where the image just inside ``e`` is brighter
-    (``polarity = +1``) or darker (``-1``) than just outside (bands at ``band_px``)."""
+    (``polarity = +1``) or darker (``-1``) than just outside (bands at ``band_px``), or
+    differs from it in either sense (``0``: a rim of mixed polarity)."""
     p = e.points(n)
     nrm = e.normals(n)
     both = np.concatenate([p - band_px * nrm, p + band_px * nrm]).astype(np.float32)
     vals = sample_image(image_s, both[:, 0], both[:, 1], "linear")
-    return float(np.mean(polarity * (vals[:n] - vals[n:]) > 0.01))
+    step = vals[:n] - vals[n:]
+    return float(np.mean((polarity * step if polarity != 0 else np.abs(step)) > 0.01))
+
+
+def contrast_scale(gray8: np.ndarray, bright_level: float, floor: float = 0.2) -> float:
+    """Factor in [``floor``, 1] for absolute edge thresholds on a uint8 image: its bright
+    level (99th percentile, grey levels) over ``bright_level`` when lower, else 1."""
+    level = float(np.percentile(gray8, 99))
+    return float(np.clip(level / bright_level, floor, 1.0))
 
 
 def face_rise(
@@ -216,13 +240,20 @@ class RingTracker:
     detection or the tracked fit), `acquire` otherwise (every plausible ellipse of the whole
     image, refined; the caller picks the pair that makes one 3-D circle in both cameras).
     Neither mode changes the track: the caller `commit`s the observation it keeps.
+    ``mixed_detector``: the same detector linking arcs of either polarity, for
+    `acquire(..., mixed=True)` (`RingConfig.mixed_acquisition`); None: no such pass.
     """
 
     def __init__(
-        self, camera: Camera, detector: Detector, config: RingConfig | None = None
+        self,
+        camera: Camera,
+        detector: Detector,
+        config: RingConfig | None = None,
+        mixed_detector: Detector | None = None,
     ) -> None:
         self.camera = Camera(camera)
         self.detector = detector
+        self.mixed_detector = mixed_detector
         self.config = config or RingConfig()
         self.track: RingTrack | None = None
 
@@ -268,12 +299,16 @@ class RingTracker:
         roi: tuple[int, int, int, int] | None,
         image_s: np.ndarray,
         polarity: int | None,
+        mixed: bool = False,
     ) -> list[tuple[Ellipse, int]]:
         """Detected ellipses that could be the outer front edge with the rim's polarity
-        (``+1`` brighter inside, ``-1`` darker; ``None``: whichever dominates), largest first."""
+        (``+1`` brighter inside, ``-1`` darker; ``None``: whichever dominates), largest first.
+        ``mixed``: detected by the ``mixed_detector``, and where neither sign dominates, an
+        edge of either sign all round is ring-like too (polarity 0)."""
         cfg = self.config
         out = []
-        for c in self.detector(image.gray8, roi):
+        detector = self.mixed_detector if mixed and self.mixed_detector else self.detector
+        for c in detector(image.gray8, roi):
             e = c.ellipse
             if c.support < cfg.min_candidate_support:
                 continue
@@ -281,6 +316,9 @@ class RingTracker:
                 continue
             pols = (polarity,) if polarity is not None else (+1, -1)
             dom, pol = max((inside_dominance(image_s, e, p), p) for p in pols)
+            if dom < cfg.min_bright_inside and mixed and polarity is None:
+                # the mixed pass: an edge all round whose sign changes along the perimeter
+                dom, pol = inside_dominance(image_s, e, 0), 0
             if dom < cfg.min_bright_inside:
                 continue
             out.append((e, pol))
@@ -352,19 +390,34 @@ class RingTracker:
         return (self._observation(refined, source), pol), None
 
     def acquire(
-        self, image: PreparedImage, max_candidates: int = 6
+        self,
+        image: PreparedImage,
+        max_candidates: int = 6,
+        mixed: bool = False,
+        known: Sequence[tuple[EllipseObservation, int]] = (),
     ) -> list[tuple[EllipseObservation, int]]:
         """Every plausible ring edge in the whole image, refined, largest first, with its
-        polarity; at most ``max_candidates``."""
+        polarity; at most ``max_candidates``.
+
+        ``mixed``: the candidates of the ``mixed_detector`` instead (arcs of either polarity
+        linked; `RingConfig.mixed_acquisition`), whose ring-likeness may hold with either
+        sign along the perimeter (polarity 0: each normal keeps the stronger edge); [] without
+        a mixed detector. The band seeds are not looked for again, and candidates that repeat
+        one of ``known`` (found before) are left out."""
         if image.problem is not None:
             return []
         cfg = self.config
+        if mixed and self.mixed_detector is None:
+            return []
         image_s = smoothed(image.gray, cfg.edges)
         out: list[tuple[EllipseObservation, int]] = []
-        for e, pol in self._plausible(image, None, image_s, None):
+        found = self._plausible(image, None, image_s, None, mixed)
+        for e, pol in found:
             self._add_candidates(image, image_s, e, pol, out)
             if len(out) >= max_candidates:
                 break
+        if mixed:
+            return [c for c in out if not _known(c[0], list(known))][:max_candidates]
         if not out and cfg.bands.enabled:
             # no arc-based candidate: a rim seen as a thin band on a busy panel
             # (`satpose.frontend.ring_bands`); its seeds are refined and verified the same way
