@@ -338,6 +338,7 @@ def refine_circle(
     sigma_px: float | None = None,
     iterations: int = 8,
     radius_prior: tuple[float, float] | None = None,
+    fixed_normal: bool = False,
 ) -> Circle3D:
     """Fit a 3-D circle to the sub-pixel edge points of both images (Gauss-Newton on the
     points' first-order geometric distances to the projected circle), with covariance.
@@ -353,6 +354,9 @@ def refine_circle(
         radius_prior: ``(radius_m, sigma_m)`` of a ring whose outer radius is known (a
             standard interface): one more residual ``(r - radius_m) / sigma_m``, in units of
             the edge noise, so that it weighs as the prior says.
+        fixed_normal: keep ``normal`` and fit centre and radius only (points that cover part
+            of the circle, whose normal a fit to all of them constrains better); the
+            covariance is still that of all six parameters at the result.
     """
     cams = [
         (
@@ -409,6 +413,9 @@ def refine_circle(
                 raise GeometryFailure(diverged)
             if radius_prior is not None:
                 r0, J = _with_radius_prior(r0, J, r, radius_prior, sigma_px)
+            if fixed_normal:
+                J = J.copy()
+                J[:, 3:5] = 0.0  # no step in the normal (lstsq: the minimum-norm step)
             step = _bounded_circle_step(np.linalg.lstsq(J, -r0, rcond=None)[0], r)
             c, n, r = unpack(step, c, n, r)
             if np.abs(step[:3]).max() < 1e-7 and np.abs(step[3:]).max() < 1e-8:
