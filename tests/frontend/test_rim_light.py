@@ -221,3 +221,19 @@ def test_refine_circle_fits_a_shared_band_height() -> None:
     assert abs(fit.radius - rim.radius) < 2e-5
     assert np.linalg.norm(plain.center - rim.center) > 50 * np.linalg.norm(fit.center - rim.center)
     assert fit.covariance[2, 2] > plain.covariance[2, 2]  # the nuisance costs information
+
+
+def test_light_config_from_yaml_form() -> None:
+    """The light as a user states it in a run's config (YAML form), and one-line errors."""
+    from satpose.datasets.config import from_plain
+    from satpose.datasets.errors import ConfigError
+    from satpose.tools.pipeline import PipelineConfig
+
+    rim = {"enabled": True, "labels": "light", "light_position_m": [0.15, -0.12, 0.0]}
+    c = from_plain(PipelineConfig, {"frontend": {"rim": rim}})
+    assert c.frontend.rim.light_position_m == (0.15, -0.12, 0.0)
+    assert c.frontend.rim.shadow == "model"
+    with pytest.raises(ConfigError, match="exactly one of light_position_m"):
+        from_plain(PipelineConfig, {"frontend": {"rim": {"labels": "light"}}})
+    with pytest.raises(ConfigError, match="light_position_m: expected 3 values"):
+        from_plain(PipelineConfig, {"frontend": {"rim": {**rim, "light_position_m": [0.1]}}})
