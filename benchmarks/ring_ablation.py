@@ -251,7 +251,10 @@ def markdown(
         "error [cm] / radius error [mm] / disparity error of the edges `d_disp` [px] (left "
         "x-shift - right x-shift; < 0: farther) / per camera the edges' growth [px] and shift "
         "(x, y) [px] against the true rim's image / fraction of pixels at full scale within "
-        "3 px of the ring (benchmarks/ring_ablation.py says how).",
+        "3 px of the ring (benchmarks/ring_ablation.py says how). The last column: the same "
+        "with the ring refitted by the light (`rim.labels: light`, the shadow band modelled); "
+        "its `d_disp` is of the edge points that refit used, which with the band modelled "
+        "rather than removed are much the default's.",
         "",
     ]
     for r in rows:
