@@ -288,8 +288,10 @@ def shadow_band(
         xo = ((P + h0 * rho) @ T.R.T + T.t) @ K.T  # a point outside, for the sign
         outside = np.sign(sampson_distance(xo[:, :2] / xo[:, 2:3], conic))
         width = np.maximum(outside * sampson_distance(q, conic), 0.0) / h0
-        dark = (s_light < edge_slopes(P, rho, normal, C)) & (s_light < 0.0)
-        out.append(np.where(dark, width, 0.0))
+        # where the light is behind the rim's plane the front face itself is unlit: no band
+        # model there (s_light is -inf)
+        dark = np.isfinite(s_light) & (s_light < edge_slopes(P, rho, normal, C)) & (s_light < -1e-9)
+        out.append(np.where(dark & np.isfinite(width), width, 0.0))
     return out[0], out[1]
 
 

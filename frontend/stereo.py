@@ -410,6 +410,8 @@ def refine_circle(
         return np.concatenate(res), np.vstack(jac)
 
     beta = None if band is None else np.concatenate([np.asarray(b, float) for b in band])
+    if beta is not None and not np.any(np.abs(beta) > 1e-9):
+        beta = None  # no band anywhere: nothing to fit it to
     k = 0.0
 
     def with_band(res: np.ndarray, J: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:

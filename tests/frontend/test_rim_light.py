@@ -24,6 +24,7 @@ from satpose.frontend.rim import (
     fit_outer_rim,
     lit_labels,
     rim_samples,
+    shadow_band,
 )
 from satpose.frontend.stereo import Circle3D, StereoRig, circle_conic, refine_circle
 
@@ -237,3 +238,22 @@ def test_light_config_from_yaml_form() -> None:
         from_plain(PipelineConfig, {"frontend": {"rim": {"labels": "light"}}})
     with pytest.raises(ConfigError, match="light_position_m: expected 3 values"):
         from_plain(PipelineConfig, {"frontend": {"rim": {**rim, "light_position_m": [0.1]}}})
+
+
+def test_no_band_anywhere_is_the_plain_fit() -> None:
+    """A light that casts no visible band (sunlight along the ring's axis: the shadow falls
+    straight behind the wall) gives zero band widths, and the fit with them is the plain one
+    (no unconstrained nuisance)."""
+    rim = _circle(np.array([0.1, 0.05, 4.0]), 30.0, 0.3)
+    widths = shadow_band(rim, RIG, 240, -rim.normal, sun=True)
+    assert not np.any(widths[0]) and not np.any(widths[1])
+    P, _ = rim_samples(rim, 240)
+    pts = [_project(T, P) for T in (Rigid3.identity(), RIG.right_from_left)]
+    start = (rim.center + 0.01, rim.normal, 0.31)
+    fit = refine_circle(RIG, *start, pts[0], pts[1], sigma_px=0.1, band=widths)
+    plain = refine_circle(RIG, *start, pts[0], pts[1], sigma_px=0.1)
+    assert np.allclose(fit.center, plain.center, atol=1e-12)
+    assert np.allclose(fit.covariance, plain.covariance, atol=1e-15)
+    # a lamp behind the rim's plane lights no front face: no band either
+    behind = rim.center - 2.0 * rim.normal
+    assert not any(np.any(w) for w in shadow_band(rim, RIG, 240, behind, sun=False))
