@@ -34,7 +34,7 @@ from _common import machine_summary, write_page  # benchmarks/_common.py (script
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.random_family import random_draw
 from satpose.datasets.render import render_sequence
-from satpose.datasets.scenarios import rim_in_view, scaled
+from satpose.datasets.scenarios import LightConfig, Scenario, rim_in_view, scaled
 from satpose.datasets.seed_split import TUNING_SEEDS, VALIDATION_SEEDS
 from satpose.datasets.sequence import load_sequence
 from satpose.frontend.conics import circle_to_conic, conic_to_ellipse
@@ -80,10 +80,28 @@ def ring_checks(seq_path: Path, run: Path, scenario: Any) -> dict[str, float]:
     }
 
 
-def pipeline_config(args: argparse.Namespace) -> PipelineConfig:
-    """The default `satpose run` configuration, with ``--disparity-bias`` and
-    ``--largest-ring`` if given."""
+def lit_rim(c: PipelineConfig, light: LightConfig) -> PipelineConfig:
+    """``c`` with the ring refitted where no shadow of it shows beside the rim
+    (`satpose.frontend.rim.lit_labels`), the light stated as a user would: the rig's lamp
+    position or the sun's direction in the left camera frame."""
+    if light.rotation_deg_s != 0.0:
+        raise SystemExit("--lit-rim: a turning light is not a fixed light in the rig frame")
+    where = (
+        {"light_position_m": tuple(light.position_m)}
+        if light.kind == "point"
+        else {"sun_direction": tuple(light.direction)}
+    )
+    rim = replace(c.frontend.rim, enabled=True, labels="light", **where)
+    return replace(c, frontend=replace(c.frontend, rim=rim))
+
+
+def pipeline_config(args: argparse.Namespace, scenario: Scenario) -> PipelineConfig:
+    """The default `satpose run` configuration, with ``--disparity-bias``,
+    ``--largest-ring`` and ``--lit-rim`` (the light from ``scenario``: a lamp's with
+    ``lamp``, a lamp's or the sun's with ``all``) if given."""
     c = PipelineConfig()
+    if args.lit_rim == "all" or (args.lit_rim == "lamp" and scenario.light.kind == "point"):
+        c = lit_rim(c, scenario.light)
     if args.largest_ring:
         sr = replace(c.frontend.stereo_ring, behind_sigma=None)
         c = replace(c, frontend=replace(c.frontend, stereo_ring=sr))
@@ -108,12 +126,12 @@ def one(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     }
     tag = f"{seed}-{s.rig.width}x{s.rig.height}-{s.render.spp}spp-{s.frames}f"
     seq = args.root / tag
-    run = args.root / f"{tag}-run"
+    run = args.root / f"{tag}-run{f'-lit-rim-{args.lit_rim}' if args.lit_rim else ''}"
     try:
         if not (seq / "frames.csv").is_file():
             render_sequence(s, seq, overwrite=True)
         start = time.process_time()
-        run_pipeline(seq, "online", run, pipeline_config(args), overwrite=True)
+        run_pipeline(seq, "online", run, pipeline_config(args, s), overwrite=True)
         row["cpu_s"] = time.process_time() - start
         res = evaluate_run(seq, run)
         for name, key in (("per-frame (frontend)", "fe"), ("offline", "off")):
@@ -152,6 +170,7 @@ def markdown(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
         f"{args.spp}"
         + ("" if args.disparity_bias is None else f" --disparity-bias {args.disparity_bias:g}")
         + (" --largest-ring" if args.largest_ring else "")
+        + (f" --lit-rim {args.lit_rim}" if args.lit_rim else "")
         + f"` ({machine_summary()}; {time.strftime('%Y-%m-%d')}). Do not edit by hand.",
         "",
         "Per sequence: per-frame (frontend) and offline-smoother mean errors (position of the "
@@ -284,11 +303,19 @@ def main() -> None:
         help="the old ring choice: the largest consistent pair wins (stereo_ring.behind_sigma: "
         "null)",
     )
+    parser.add_argument(
+        "--lit-rim",
+        choices=["lamp", "all"],
+        help="the ring refitted where no shadow of it shows beside the rim (rim.labels: light, "
+        "the scene's light stated as the user would; docs/frontend.md): in the lamp-lit "
+        "scenes only, or in all (the sun's direction too)",
+    )
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     seeds = list(TUNING_SEEDS if args.set == "tuning" else VALIDATION_SEEDS)[: args.count]
     rows = [one(seed, args) for seed in seeds]
-    out = args.out or Path(f"docs/results/random_family_{args.set}.md")
+    suffix = f"_lit_rim_{args.lit_rim}" if args.lit_rim else ""
+    out = args.out or Path(f"docs/results/random_family_{args.set}{suffix}.md")
     write_page(out, markdown(rows, args))
 
 

@@ -338,6 +338,8 @@ def refine_circle(
     sigma_px: float | None = None,
     iterations: int = 8,
     radius_prior: tuple[float, float] | None = None,
+    fixed_normal: bool = False,
+    band: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Circle3D:
     """Fit a 3-D circle to the sub-pixel edge points of both images (Gauss-Newton on the
     points' first-order geometric distances to the projected circle), with covariance.
@@ -353,6 +355,15 @@ def refine_circle(
         radius_prior: ``(radius_m, sigma_m)`` of a ring whose outer radius is known (a
             standard interface): one more residual ``(r - radius_m) / sigma_m``, in units of
             the edge noise, so that it weighs as the prior says.
+        fixed_normal: keep ``normal`` and fit centre and radius only (points that cover part
+            of the circle, whose normal a fit to all of them constrains better); the
+            covariance is still that of all six parameters at the result.
+        band: per edge point of each image (left (N,), right (M,)), how far [px] outside
+            the circle's image the edge is expected per metre of one unknown ``k`` that both
+            images share (a shadow band beside the rim whose width is proportional to the
+            wall's height: `satpose.frontend.rim.shadow_band`): the distances become
+            ``d - k * band``, ``k`` is fitted with the circle, and the covariance is the
+            circle's marginal over it.
     """
     cams = [
         (
@@ -398,6 +409,18 @@ def refine_circle(
             jac.append(Jd @ dC)
         return np.concatenate(res), np.vstack(jac)
 
+    beta = None if band is None else np.concatenate([np.asarray(b, float) for b in band])
+    if beta is not None and not np.any(np.abs(beta) > 1e-9):
+        beta = None  # no band anywhere: nothing to fit it to
+    k = 0.0
+
+    def with_band(res: np.ndarray, J: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+        if beta is None:
+            return res, J
+        res = np.r_[res[: beta.size] - k * beta, res[beta.size :]]
+        col = np.r_[-beta, np.zeros(J.shape[0] - beta.size)]
+        return res, np.c_[J, col]
+
     c, n, r = np.asarray(center, float), np.asarray(normal, float), float(radius)
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(n)) and math.isfinite(r) and r > 0):
         raise GeometryFailure("the ring circle fit has no finite starting circle")
@@ -409,8 +432,14 @@ def refine_circle(
                 raise GeometryFailure(diverged)
             if radius_prior is not None:
                 r0, J = _with_radius_prior(r0, J, r, radius_prior, sigma_px)
+            r0, J = with_band(r0, J, k)
+            if fixed_normal:
+                J = J.copy()
+                J[:, 3:5] = 0.0  # no step in the normal (lstsq: the minimum-norm step)
             step = _bounded_circle_step(np.linalg.lstsq(J, -r0, rcond=None)[0], r)
             c, n, r = unpack(step, c, n, r)
+            if beta is not None:
+                k += float(step[6])
             if np.abs(step[:3]).max() < 1e-7 and np.abs(step[3:]).max() < 1e-8:
                 break
         res, J = linearise(c, n, r)
@@ -424,11 +453,12 @@ def refine_circle(
         raise GeometryFailure(diverged)
     if not (math.isfinite(r) and r > 0 and c[2] > 0):
         raise GeometryFailure(diverged)
-    s2 = sigma_px**2 if sigma_px is not None else float(res @ res) / max(res.size - 6, 1)
+    res, J = with_band(res, J, k)
+    s2 = sigma_px**2 if sigma_px is not None else float(res @ res) / max(res.size - J.shape[1], 1)
     if radius_prior is not None:
         res, J = _with_radius_prior(res, J, r, radius_prior, math.sqrt(s2))
     try:
-        cov6 = np.linalg.inv(J.T @ J) * s2
+        cov6 = (np.linalg.inv(J.T @ J) * s2)[:6, :6]
     except np.linalg.LinAlgError:
         raise GeometryFailure("the ring circle is not constrained by its edge points") from None
     cov7 = circle_covariance(cov6, n, r)
