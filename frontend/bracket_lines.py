@@ -1603,8 +1603,9 @@ def exact_taper(
 TAPER_MIN_SPAN_WIDTHS = 12.0
 
 # `measure_taper`'s edges: the outermost gradient peak at least this fraction of the
-# profile's steepest (low: a side-lit strut's dim shaded limb still counts)
-TAPER_EDGE = 0.15
+# profile's steepest (low: a side-lit strut's dim shaded limb, ~10 % of the lit part's
+# steepest, still counts; 0.15 missed it on tuning seeds 14, 24, 31)
+TAPER_EDGE = 0.06
 
 
 def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) -> Strut:

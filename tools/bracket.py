@@ -381,9 +381,13 @@ def run_bracket(
                 chosen = hyps[d.candidate]
                 assert chosen.detection is not None
                 # the frame's own quantities, from the track's fitted pose: the per-frame
-                # maximum of the likelihood in the chosen labelling's basin
+                # maximum of the likelihood in the chosen labelling's basin. Without the
+                # struts' tapers: they choose the basin (the labelling), but as a pose
+                # measurement they are biased (measured / true 1.06-1.22 on the tuning
+                # members, docs/bracket.md "Strut taper"; tuning seed 1 was reported 5-8 deg
+                # off with them)
                 start = d.pose if d.pose is not None else chosen.refined
-                pose, cov, _ = refine_partial_pose(start, chosen.model)
+                pose, cov, _ = refine_partial_pose(start, replace(chosen.model, tapers=()))
                 if d.pose is not None and not labeller.agree(d.pose, pose):
                     # the frame's own likelihood has no maximum near the decided track (the
                     # true pair of P3P roots turned complex in noise) and the refit slid to

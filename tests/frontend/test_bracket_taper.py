@@ -85,6 +85,44 @@ def tapered_bar(w0: float, w1: float, noise: float, seed: int) -> tuple[np.ndarr
     return np.clip(img, 0, 255).astype(np.float32), strut
 
 
+def side_lit_bar(w0: float, w1: float, sun_deg: float) -> tuple[np.ndarray, bl.Strut]:
+    """`tapered_bar`'s shape shaded as a Lambertian cylinder lit ``sun_deg`` from the view
+    direction across it (toward -y), with a dim ambient on its shaded side, on black: the
+    bar's brightest part is off its centre and one limb is only 20 DN above the background."""
+    s = 8
+    h, w = 240, 400
+    y = (np.arange(h * s) + 0.5) / s - 0.5
+    x = (np.arange(w * s) + 0.5) / s - 0.5
+    X, Y = np.meshgrid(x, y)
+    half = 0.5 * (w0 + (w1 - w0) * (X - 40.0) / 320.0)
+    u = (Y - 120.3) / half
+    inside = (np.abs(u) < 1) & (X >= 40.0) & (X <= 360.0)
+    nz = np.sqrt(np.clip(1 - u**2, 0, 1))
+    sun = math.radians(sun_deg)
+    lit = np.clip(-u * math.sin(sun) + nz * math.cos(sun), 0, None)
+    big = np.where(inside, 20.0 + 200.0 * lit, 0.0).astype(np.float32)
+    img = cv2.resize(big, (w, h), interpolation=cv2.INTER_AREA)
+    strut = bl.Strut(
+        point=np.array([40.0, 120.3]),
+        direction=np.array([1.0, 0.0]),
+        s0=0.0,
+        s1=320.0,
+        support_px=320.0,
+        residual_px=0.0,
+        width_px=0.5 * (w0 + w1),
+    )
+    return img, strut
+
+
+def test_taper_of_a_side_lit_bar() -> None:
+    """Lit 70 deg from the side, the bar's steepest edge on the shaded side is the lit
+    part's ramp, not the silhouette; the outermost edge is the dim limb's, so the taper is
+    the silhouette's (within 0.01; the largest-gradient edge gives about half of it here)."""
+    img, strut = side_lit_bar(10.0, 16.0, 70.0)
+    st = bl.measure_taper(cv2.GaussianBlur(img, (0, 0), 1.2), strut)
+    assert abs(st.taper - true_taper(st, 10.0, 16.0)) < 0.01, (st.taper, true_taper(st, 10, 16))
+
+
 def true_taper(strut: bl.Strut, w0: float, w1: float) -> float:
     a, b = strut.taper_span
     return math.log((w0 + (w1 - w0) * b / 320.0) / (w0 + (w1 - w0) * a / 320.0))
