@@ -383,7 +383,7 @@ def run_bracket(
                 # the frame's own quantities, from the track's fitted pose: the per-frame
                 # maximum of the likelihood in the chosen labelling's basin. Without the
                 # struts' tapers: they choose the basin (the labelling), but as a pose
-                # measurement they are biased (measured / true 1.06-1.22 on the tuning
+                # measurement they are biased (measured / true 1.02-1.16 on the tuning
                 # members, docs/bracket.md "Strut taper"; tuning seed 1 was reported 5-8 deg
                 # off with them)
                 start = d.pose if d.pose is not None else chosen.refined
