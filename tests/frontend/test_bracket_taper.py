@@ -5,6 +5,8 @@ solutions of the paper's view that put the base vertices on the same pixels."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -58,21 +60,20 @@ def test_silhouette_width_matches_the_closed_form_and_a_brute_force_projection()
     assert abs(got - brute_width(x, A, a, r)) < 0.03, (got, brute_width(x, A, a, r))
 
 
-def tapered_bar(w0: float, w1: float, noise: float, seed: int) -> tuple[np.ndarray, bl.Strut]:
-    """A bright bar from x = 40 to x = 360 at y = 120.3 whose width grows linearly from
-    ``w0`` to ``w1`` px, drawn at 8x and box-filtered, on a dark background with read noise
-    ``noise`` DN; with the strut candidate a detector would give (its centre line, mean
-    width, extent)."""
+def drawn_bar(
+    w0: float, w1: float, shade: Callable[[np.ndarray], np.ndarray], background: float
+) -> tuple[np.ndarray, bl.Strut]:
+    """A bar from x = 40 to x = 360 at y = 120.3 whose width grows linearly from ``w0`` to
+    ``w1`` px, its brightness ``shade(u)`` at ``u`` in (-1, 1) across it, on ``background``,
+    drawn at 8x and box-filtered; with the strut candidate a detector would give (its centre
+    line, mean width, extent)."""
     s = 8
-    h, w = 240, 400
-    y = (np.arange(h * s) + 0.5) / s - 0.5
-    x = (np.arange(w * s) + 0.5) / s - 0.5
+    y = (np.arange(240 * s) + 0.5) / s - 0.5
+    x = (np.arange(400 * s) + 0.5) / s - 0.5
     X, Y = np.meshgrid(x, y)
-    half = 0.5 * (w0 + (w1 - w0) * (X - 40.0) / 320.0)
-    inside = (np.abs(Y - 120.3) < half) & (X >= 40.0) & (X <= 360.0)
-    big = np.where(inside, 200.0, 20.0).astype(np.float32)
-    img = cv2.resize(big, (w, h), interpolation=cv2.INTER_AREA)
-    img = img + np.random.default_rng(seed).normal(0.0, noise, img.shape)
+    u = (Y - 120.3) / (0.5 * (w0 + (w1 - w0) * (X - 40.0) / 320.0))
+    inside = (np.abs(u) < 1) & (X >= 40.0) & (X <= 360.0)
+    big = np.where(inside, shade(np.clip(u, -1, 1)), background).astype(np.float32)
     strut = bl.Strut(
         point=np.array([40.0, 120.3]),
         direction=np.array([1.0, 0.0]),
@@ -82,36 +83,27 @@ def tapered_bar(w0: float, w1: float, noise: float, seed: int) -> tuple[np.ndarr
         residual_px=0.0,
         width_px=0.5 * (w0 + w1),
     )
+    return cv2.resize(big, (400, 240), interpolation=cv2.INTER_AREA), strut
+
+
+def tapered_bar(w0: float, w1: float, noise: float, seed: int) -> tuple[np.ndarray, bl.Strut]:
+    """`drawn_bar` uniformly bright (200 DN on 20) with read noise ``noise`` DN."""
+    img, strut = drawn_bar(w0, w1, lambda u: np.full_like(u, 200.0), 20.0)
+    img = img + np.random.default_rng(seed).normal(0.0, noise, img.shape)
     return np.clip(img, 0, 255).astype(np.float32), strut
 
 
 def side_lit_bar(w0: float, w1: float, sun_deg: float) -> tuple[np.ndarray, bl.Strut]:
-    """`tapered_bar`'s shape shaded as a Lambertian cylinder lit ``sun_deg`` from the view
-    direction across it (toward -y), with a dim ambient on its shaded side, on black: the
-    bar's brightest part is off its centre and one limb is only 20 DN above the background."""
-    s = 8
-    h, w = 240, 400
-    y = (np.arange(h * s) + 0.5) / s - 0.5
-    x = (np.arange(w * s) + 0.5) / s - 0.5
-    X, Y = np.meshgrid(x, y)
-    half = 0.5 * (w0 + (w1 - w0) * (X - 40.0) / 320.0)
-    u = (Y - 120.3) / half
-    inside = (np.abs(u) < 1) & (X >= 40.0) & (X <= 360.0)
-    nz = np.sqrt(np.clip(1 - u**2, 0, 1))
+    """`drawn_bar` shaded as a Lambertian cylinder lit ``sun_deg`` from the view direction
+    across it (toward -y), with a dim ambient on its shaded side, on black: the bar's
+    brightest part is off its centre and one limb is only 20 DN above the background."""
     sun = math.radians(sun_deg)
-    lit = np.clip(-u * math.sin(sun) + nz * math.cos(sun), 0, None)
-    big = np.where(inside, 20.0 + 200.0 * lit, 0.0).astype(np.float32)
-    img = cv2.resize(big, (w, h), interpolation=cv2.INTER_AREA)
-    strut = bl.Strut(
-        point=np.array([40.0, 120.3]),
-        direction=np.array([1.0, 0.0]),
-        s0=0.0,
-        s1=320.0,
-        support_px=320.0,
-        residual_px=0.0,
-        width_px=0.5 * (w0 + w1),
-    )
-    return img, strut
+
+    def shade(u: np.ndarray) -> np.ndarray:
+        lit = np.clip(-u * math.sin(sun) + np.sqrt(1 - u**2) * math.cos(sun), 0, None)
+        return 20.0 + 200.0 * lit
+
+    return drawn_bar(w0, w1, shade, 0.0)
 
 
 def test_taper_of_a_side_lit_bar() -> None:
@@ -155,16 +147,7 @@ def test_short_strut_has_no_taper() -> None:
     """A strut whose clear span (2 widths from each end) is shorter than
     `TAPER_MIN_SPAN_WIDTHS` widths gets none."""
     img, strut = tapered_bar(10.0, 10.0, 0.0, 0)
-    short = bl.Strut(
-        point=strut.point,
-        direction=strut.direction,
-        s0=0.0,
-        s1=60.0,
-        support_px=60.0,
-        residual_px=0.0,
-        width_px=10.0,
-        taper=0.3,
-    )
+    short = replace(strut, s1=60.0, support_px=60.0, width_px=10.0, taper=0.3)
     st = bl.measure_taper(cv2.GaussianBlur(img, (0, 0), 1.2), short)
     assert math.isnan(st.taper) and math.isnan(st.taper_sigma)
 
