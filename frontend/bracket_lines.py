@@ -208,6 +208,10 @@ class StrutDetection:
     image_chi2: float = math.nan
 
 
+# the struts as pairs of bracket vertices (P1, P2, P5): the base, from P1, from P2
+STRUT_AXES = ((0, 1), (0, 2), (1, 2))
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
 
@@ -507,7 +511,7 @@ def width_prior(
     for d in cands:
         P = d[:, None] * rays
         predicted = []
-        for strut, (a, b) in zip(struts, ((0, 1), (0, 2), (1, 2)), strict=True):
+        for strut, (a, b) in zip(struts, STRUT_AXES, strict=True):
             mid = 0.5 * (strut.end(0) + strut.end(1))
             w = K_inv @ np.array([mid[0], mid[1], 1.0])
             e = P[b] - P[a]
@@ -596,7 +600,7 @@ def detect_struts(
         v = geometry.vertices_m
         pix = project(predicted, v, K)
         picks: list[Strut] = []
-        for a, b in ((0, 1), (0, 2), (1, 2)):
+        for a, b in STRUT_AXES:
             d = _unit(pix[b] - pix[a])
             n = np.array([-d[1], d[0]])
             best: Strut | None = None
@@ -753,7 +757,7 @@ def _strut_widths_predicted(
     K_inv = np.linalg.inv(K)
     f = float(K[0, 0])
     out = []
-    for strut, (a, b) in zip(struts, ((0, 1), (0, 2), (1, 2)), strict=True):
+    for strut, (a, b) in zip(struts, STRUT_AXES, strict=True):
         mid = 0.5 * (strut.end(0) + strut.end(1))
         w = K_inv @ np.array([mid[0], mid[1], 1.0])
         A = np.stack([w, -(P[b] - P[a])], axis=1)
@@ -812,7 +816,7 @@ def _verify(
         if spread > cfg.max_width_spread:
             return math.inf, f"strut widths inconsistent (log spread {spread:.2f})"
         cost += float(np.sum(((lr - mean) / (cfg.max_width_spread / 2)) ** 2))
-        for strut, (i, j) in zip(struts, ((0, 1), (0, 2), (1, 2)), strict=True):
+        for strut, (i, j) in zip(struts, STRUT_AXES, strict=True):
             if not _taper_used(strut, cfg):
                 continue
             pred_t = predicted_taper(strut, pose, (v[i], v[j]), K, radius_m)
@@ -958,7 +962,7 @@ class PartialImageModel:
         )
         tapers: list[TaperMeasurement] = []
         if struts is not None and config.strut_radius_m is not None:
-            for st, axis in zip(struts, ((0, 1), (0, 2), (1, 2)), strict=True):
+            for st, axis in zip(struts, STRUT_AXES, strict=True):
                 if _taper_used(st, config):
                     tapers.append(
                         TaperMeasurement(
@@ -993,15 +997,16 @@ class PartialImageModel:
             np.linalg.inv(self.K),
         )
 
-    def _taper_residuals(self, pose: Rigid3) -> np.ndarray:
-        return _huber_whitened(
-            np.array(
-                [
-                    (m.value - m.predicted(pose, self.vertices, self.K)) / m.sigma
-                    for m in self.tapers
-                ]
-            )
-        )
+    def _taper_residuals(self, P: np.ndarray) -> np.ndarray:
+        """Whitened (Huber) taper residuals (k, m) for the posed vertices ``P`` (k, 3, 3) of
+        k poses; a large prediction (1e3) where an axis end lies behind the camera or the
+        camera inside the cylinder, so a fit is pushed back."""
+        i0, i1, radii, x, value, sigma, K_inv = self._taper_arrays
+        w = _widths_on_lines(_silhouette_lines(P[:, i0], P[:, i1], radii, K_inv), x)
+        ok = (P[:, i0, 2] > 0) & (P[:, i1, 2] > 0) & np.all(w > 0, axis=-1)
+        w = np.where(ok[..., None], w, 1.0)
+        pred = np.where(ok, np.log(w[..., 1] / w[..., 0]), 1e3)
+        return _huber_whitened((value - pred) / sigma)
 
     def residual(self, pose: Rigid3) -> np.ndarray:
         """Whitened ``(z - h(pose)) / sigma``, angles wrapped, then the tapers'."""
@@ -1009,7 +1014,10 @@ class PartialImageModel:
             pose, self.vertices, self.K, self.fraction, len(self.z) > 6
         )
         r[4:6] = (r[4:6] + math.pi) % (2 * math.pi) - math.pi
-        return np.concatenate([r / self.sigma, self._taper_residuals(pose)])
+        if not self.tapers:
+            return r / self.sigma
+        P = pose.apply(self.vertices)[None]
+        return np.concatenate([r / self.sigma, self._taper_residuals(P)[0]])
 
     def residual_and_jacobian(self, pose: Rigid3) -> tuple[np.ndarray, np.ndarray]:
         """``r`` and ``dr/dxi`` (m x 6) for the right perturbation ``pose Exp(xi)``,
@@ -1054,17 +1062,11 @@ class PartialImageModel:
         Jq = -np.array(J) / self.sigma[:, None]
         if not self.tapers:
             return r, Jq
-        # the vertices under the pose and its 12 central-difference steps (13, 3, 3), every
-        # taper's silhouette lines at once (13, m, 2, 3) and its widths at its two points
+        # the vertices under the pose and its 12 central-difference steps (13, 3, 3): every
+        # taper of every step in one evaluation
         Pk = np.einsum("ij,kaj->kai", R, np.einsum("kij,aj->kai", _STEP_ROT, V) + _STEP_T[:, None])
         Pk = Pk + t
-        i0, i1, radii, x, value, sigma, K_inv = self._taper_arrays
-        lines = _silhouette_lines(Pk[:, i0], Pk[:, i1], radii, K_inv)
-        w = _widths_on_lines(lines, x)  # (13, m, 2)
-        ok = (Pk[:, i0, 2] > 0) & (Pk[:, i1, 2] > 0) & np.all(w > 0, axis=-1)
-        w = np.where(ok[..., None], w, 1.0)
-        pred = np.where(ok, np.log(w[..., 1] / w[..., 0]), 1e3)  # an end behind: push back
-        res = _huber_whitened((value - pred) / sigma)  # (13, m)
+        res = self._taper_residuals(Pk)  # (13, m)
         rt = res[0]
         Jt = ((res[1:7] - res[7:13]) / (2 * _STEP)).T
         return np.concatenate([r, rt]), np.vstack([Jq, Jt])
@@ -1105,14 +1107,6 @@ class TaperMeasurement:
     px: np.ndarray
     axis: tuple[int, int]
     radius_m: float
-
-    def predicted(self, pose: Rigid3, vertices: np.ndarray, K: np.ndarray) -> float:
-        """The taper ``pose`` predicts (`taper_between`); a large value (1e3) where a ray
-        misses the posed axis in front of the camera, so a fit is pushed back."""
-        t = taper_between(
-            self.px, pose, (vertices[self.axis[0]], vertices[self.axis[1]]), K, self.radius_m
-        )
-        return t if math.isfinite(t) else 1e3
 
 
 def _skews(v: np.ndarray) -> np.ndarray:
@@ -1333,13 +1327,12 @@ def quantity_hypotheses(
 
     struts = (strut(p1, p2, w[0]), strut(p1, e1, w[1]), strut(p2, e2, w[2]))
     if taper_pose is not None and cfg.use_taper and cfg.strut_radius_m is not None:
-        axes = ((V[0], V[1]), (V[0], V[2]), (V[1], V[2]))
         r = cfg.strut_radius_m
-        struts = (
-            exact_taper(struts[0], taper_pose, axes[0], K, r),
-            exact_taper(struts[1], taper_pose, axes[1], K, r),
-            exact_taper(struts[2], taper_pose, axes[2], K, r),
+        base, s1, s2 = (
+            exact_taper(st, taper_pose, (V[i], V[j]), K, r)
+            for st, (i, j) in zip(struts, STRUT_AXES, strict=True)
         )
+        struts = (base, s1, s2)
     obs = BracketObservation(p1_px=p1, p2_px=p2, p3_px=e2, p4_px=e1, sigma_px=cfg.min_sigma_px)
     rays = np.c_[np.array([p1, p2, apex]), np.ones(3)] @ np.linalg.inv(K).T
     rays = rays / rays[:, 2:3]
@@ -1681,24 +1674,9 @@ def silhouette_width_px(
     from ``point`` to the images of its two silhouette lines, the tangent planes through the
     camera centre parallel to the axis (``m . Q = +-r``, ``Q`` the axis point nearest the
     centre). NaN when the camera is inside the cylinder."""
-    a = np.asarray(axis_dir, dtype=float)
-    a = a / np.linalg.norm(a)
     A = np.asarray(axis_point, dtype=float)
-    Q = A - (A @ a) * a
-    d = float(np.linalg.norm(Q))
-    if d <= radius_m:
-        return math.nan
-    e1 = Q / d
-    e2 = np.cross(a, e1)
-    c = radius_m / d
-    s = math.sqrt(1.0 - c * c)
-    K_invT = np.linalg.inv(K).T
-    x = np.array([point[0], point[1], 1.0])
-    out = 0.0
-    for m in (c * e1 + s * e2, c * e1 - s * e2):
-        line = K_invT @ m
-        out += abs(float(line @ x)) / math.hypot(line[0], line[1])
-    return out
+    lines = _silhouette_lines(A, A + np.asarray(axis_dir, dtype=float), radius_m, np.linalg.inv(K))
+    return float(_widths_on_lines(lines, np.array([[point[0], point[1], 1.0]]))[0])
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -1776,16 +1754,15 @@ def _scaled(gray: np.ndarray) -> np.ndarray:
     return gray.astype(np.float32) * (255.0 / float(gray.max()))
 
 
-def _refit_all(scaled: np.ndarray, cands: list[Strut], config: StrutDetectorConfig) -> list[Strut]:
-    """`_silhouette_refit` of every candidate on the blurred ``scaled`` image, then its taper
-    measured (`measure_taper`; their order kept: neither changes the support)."""
+def _finished(
+    scaled: np.ndarray, cands: list[Strut], config: StrutDetectorConfig, silhouette: bool
+) -> list[Strut]:
+    """Every candidate (``silhouette``: first moved to its strut's silhouette,
+    `_silhouette_refit`) with its taper measured (`measure_taper`), on the blurred ``scaled``
+    image; their order kept: neither changes the support."""
     blurred = cv2.GaussianBlur(scaled, (0, 0), config.blur_sigma_px)
-    return [measure_taper(blurred, _silhouette_refit(blurred, c)) for c in cands]
-
-
-def _tapered(scaled: np.ndarray, cands: list[Strut], config: StrutDetectorConfig) -> list[Strut]:
-    """Every candidate with its taper measured on the blurred ``scaled`` image."""
-    blurred = cv2.GaussianBlur(scaled, (0, 0), config.blur_sigma_px)
+    if silhouette:
+        cands = [_silhouette_refit(blurred, c) for c in cands]
     return [measure_taper(blurred, c) for c in cands]
 
 
@@ -1797,7 +1774,7 @@ def silhouette_candidates(
     `partial_candidates` with ``silhouette=True``, without finding the segments and bars
     again."""
     seg, cands = prepared
-    return seg, _refit_all(_scaled(np.asarray(image)), cands, config)
+    return seg, _finished(_scaled(np.asarray(image)), cands, config, silhouette=True)
 
 
 def partial_candidates(
@@ -1817,7 +1794,7 @@ def partial_candidates(
         return StrutDetection(None, None, seg, reason=f"only {len(seg)} line segments")
     scaled = _scaled(img)
     cands = sorted(_merge(_bars(scaled, seg, config), config), key=lambda c: -c.support_px)
-    cands = _refit_all(scaled, cands, config) if silhouette else _tapered(scaled, cands, config)
+    cands = _finished(scaled, cands, config, silhouette)
     if len(cands) < 3:
         return StrutDetection(
             None, None, seg, tuple(cands), reason=f"{len(cands)} strut candidates (need 3)"
