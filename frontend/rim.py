@@ -145,6 +145,12 @@ class RimFitConfig:
         if not (self.search_px > 0 and self.passes >= 1 and 0 < self.min_rim_fraction <= 1):
             raise ValueError("rim fit: search_px > 0, passes >= 1, 0 < min_rim_fraction <= 1")
 
+    def light(self) -> tuple[np.ndarray, bool]:
+        """The light as `lit_labels` and `shadow_band` take it: ``(sun_direction, True)``
+        or ``(light_position_m, False)``."""
+        sun = self.sun_direction is not None
+        return np.asarray(self.sun_direction if sun else self.light_position_m, float), sun
+
 
 @dataclass(frozen=True)
 class RimFit:
@@ -249,14 +255,24 @@ def lit_labels(
     Returns:
         points (n, 3), and boolean masks (n,) for the left and the right camera.
     """
+    P, _, _, s_light, s_cams = _light_slopes(circle, rig, n, light, sun)
+    tol = math.tan(math.radians(margin_deg)) + 1e-9
+    return P, s_light >= s_cams[0] - tol, s_light >= s_cams[1] - tol
+
+
+def _light_slopes(
+    circle: Circle3D, rig: StereoRig, n: int, light: np.ndarray, sun: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """`edge_slopes` at the circle's samples (`rim_samples`, normal toward the cameras)
+    toward the light (a lamp at ``light``, or the sun: ``light`` the direction sunlight
+    travels) and toward each camera: ``(points, outward directions, normal, s_light,
+    (s_left, s_right))``."""
     P, rho = rim_samples(circle, n)
     c_left, c_right = camera_centers(rig)
     normal = circle.normal if circle.normal @ (c_left - circle.center) > 0 else -circle.normal
     toward = np.broadcast_to(-light / np.linalg.norm(light), P.shape) if sun else light
-    s_light = edge_slopes(P, rho, normal, toward)
-    tol = math.tan(math.radians(margin_deg)) + 1e-9
-    masks = [s_light >= edge_slopes(P, rho, normal, c) - tol for c in (c_left, c_right)]
-    return P, masks[0], masks[1]
+    s_cams = (edge_slopes(P, rho, normal, c_left), edge_slopes(P, rho, normal, c_right))
+    return P, rho, normal, edge_slopes(P, rho, normal, toward), s_cams
 
 
 def shadow_band(
@@ -272,16 +288,16 @@ def shadow_band(
     Returns:
         (n,) per camera (left, right), >= 0.
     """
-    P, rho = rim_samples(circle, n)
-    c_left, c_right = camera_centers(rig)
-    normal = circle.normal if circle.normal @ (c_left - circle.center) > 0 else -circle.normal
+    P, rho, normal, s_light, s_cams = _light_slopes(circle, rig, n, light, sun)
     v = np.broadcast_to(-light / np.linalg.norm(light), P.shape) if sun else light - P
-    s_light = edge_slopes(P, rho, normal, v if sun else light)
     h0 = 1e-3 * circle.radius  # a small height: the band's width is linear in it
     Q = P - h0 * v / (v @ normal)[:, None]
     out = []
-    cams = ((rig.K_left, Rigid3.identity(), c_left), (rig.K_right, rig.right_from_left, c_right))
-    for K, T, C in cams:
+    cams = (
+        (rig.K_left, Rigid3.identity(), s_cams[0]),
+        (rig.K_right, rig.right_from_left, s_cams[1]),
+    )
+    for K, T, s_cam in cams:
         conic = circle_conic(K, T, circle.center, circle.normal, circle.radius)
         x = (Q @ T.R.T + T.t) @ K.T
         q = x[:, :2] / x[:, 2:3]
@@ -290,7 +306,7 @@ def shadow_band(
         width = np.maximum(outside * sampson_distance(q, conic), 0.0) / h0
         # where the light is behind the rim's plane the front face itself is unlit: no band
         # model there (s_light is -inf)
-        dark = np.isfinite(s_light) & (s_light < edge_slopes(P, rho, normal, C)) & (s_light < -1e-9)
+        dark = np.isfinite(s_light) & (s_light < s_cam) & (s_light < -1e-9)
         out.append(np.where(dark & np.isfinite(width), width, 0.0))
     return out[0], out[1]
 
@@ -301,8 +317,7 @@ def sample_labels(
     """The samples of ``circle`` that `fit_outer_rim` keeps per camera (``config.labels``)."""
     if config.labels == "wall":
         return rim_labels(circle, rig, config.samples, config.wall_margin_deg)
-    sun = config.sun_direction is not None
-    light = np.asarray(config.sun_direction if sun else config.light_position_m, float)
+    light, sun = config.light()
     return lit_labels(circle, rig, config.samples, light, sun, config.light_margin_deg)
 
 
@@ -346,9 +361,7 @@ def fit_outer_rim(
         fractions = (float(m_left.mean()), float(m_right.mean()))
         bands = (np.zeros(len(P)), np.zeros(len(P)))
         if model:
-            sun = config.sun_direction is not None
-            light = np.asarray(config.sun_direction if sun else config.light_position_m, float)
-            bands = shadow_band(circle, rig, config.samples, light, sun)
+            bands = shadow_band(circle, rig, config.samples, *config.light())
             m_left = m_right = np.ones(len(P), bool)
         found, found_band = [], []
         projected = zip(rig.project(P), rig.project(circle.center[None]), strict=True)
