@@ -9,6 +9,7 @@ from pathlib import Path
 
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import preset
+from satpose.datasets.seed_split import TUNING_SEEDS
 
 
 def ensure_rendered(name: str, root: Path) -> Path:
@@ -52,3 +53,16 @@ def machine_summary(libraries: bool = True) -> str:
         for name in ("opencv-python-headless", "mitsuba", "numpy", "gtsam")
     )
     return f"{model} ({simd}), {os.cpu_count()} cores, {libs}"
+
+
+def tuning_seeds(text: str) -> list[int]:
+    """``--seeds`` of a benchmark that looks at the members (``"0-7,12"``): tuning seeds
+    only; exits naming the others (validation seeds are only scored)."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out += list(range(int(lo), int(hi or lo) + 1))
+    bad = [s for s in out if s not in TUNING_SEEDS]
+    if bad:
+        raise SystemExit(f"--seeds: {bad} are not tuning seeds; validation seeds are only scored")
+    return out

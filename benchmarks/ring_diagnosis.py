@@ -45,13 +45,16 @@ from typing import Any
 
 import cv2
 import numpy as np
-from _common import machine_summary, write_page  # benchmarks/_common.py (scripts run from the root)
+from _common import (  # benchmarks/_common.py (scripts run from the root)
+    machine_summary,
+    tuning_seeds,
+    write_page,
+)
 
 from satpose.datasets.geometry import Rigid3
 from satpose.datasets.random_family import random_draw
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import rim_in_view, scaled
-from satpose.datasets.seed_split import TUNING_SEEDS
 from satpose.datasets.sequence import load_sequence
 from satpose.frontend.conics import Ellipse, circle_to_conic, conic_to_ellipse
 from satpose.frontend.measurements import EllipseObservation
@@ -61,17 +64,6 @@ from satpose.frontend.ring_outline import outline_hull
 ELLIPSE_SAMPLES = 90
 CURVE_SAMPLES = 720
 TIE_PX = 0.05
-
-
-def _seeds(text: str) -> list[int]:
-    out: list[int] = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        out += list(range(int(lo), int(hi or lo) + 1))
-    bad = [s for s in out if s not in TUNING_SEEDS]
-    if bad:
-        raise SystemExit(f"--seeds: {bad} are not tuning seeds; validation seeds are only scored")
-    return out
 
 
 def candidates(ring: Any) -> dict[str, tuple[float, float]]:
@@ -376,7 +368,7 @@ def main() -> None:
     if args.no_mixed:
         cfg = replace(cfg, ring=replace(cfg.ring, mixed_acquisition=False))
     start = time.perf_counter()
-    rows = [r for seed in _seeds(args.seeds) for r in diagnose(seed, args, cfg)]
+    rows = [r for seed in tuning_seeds(args.seeds) for r in diagnose(seed, args, cfg)]
     minutes = (time.perf_counter() - start) / 60.0
     out = args.out or Path(f"docs/results/ring_diagnosis_{args.label}.md")
     write_page(out, markdown(rows, args, minutes))
