@@ -1224,8 +1224,8 @@ def _weigh(
         w = width_chi2(st, ref, geometry, K, cfg)
         if not math.isfinite(w):
             w = width_chi2(st, pose, geometry, K, cfg)  # the refinement left the width check
-        tapers = sum(_taper_used(x, cfg) for x in st) if cfg.strut_radius_m is not None else 0
-        dim = (2 if fraction < 1 else 0) + (2 if cfg.strut_radius_m is not None else 0) + tapers
+        widths = 2 if cfg.strut_radius_m is not None else 0
+        dim = (2 if fraction < 1 else 0) + widths + len(model.tapers)
         h = PartialHypothesis(pose, ref, C, chi + w, dim, model, w, det)
         range_m = float(np.linalg.norm(ref.apply(ctr[None])[0]))
         same = [
