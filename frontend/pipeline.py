@@ -65,7 +65,7 @@ from satpose.frontend.rim import (
     projected_observation,
 )
 from satpose.frontend.ring import Detector, RingConfig, RingTracker, contrast_scale
-from satpose.frontend.ring_choice import front_choice, transferred_ellipse
+from satpose.frontend.ring_choice import coplanar_outer, front_choice, transferred_ellipse
 from satpose.frontend.ring_outline import OutlineConfig, OutlineFit, fit_ring_outline
 from satpose.frontend.stereo import (
     Circle3D,
@@ -97,6 +97,16 @@ class StereoRingConfig:
             deviations added to the fit's normal and centre (across the line of sight; along
             it, the depth error of this disparity error) for edge biases the fit cannot see
             (measured on the rendered presets, docs/frontend.md).
+        behind_sigma: a larger consistent circle behind a smaller nested one by more than
+            this many standard deviations is an edge behind the rim (`ring_choice`); null:
+            the largest consistent pair wins.
+        transfer: carry a camera's unpaired candidates into the other camera
+            (`ring_choice.transferred_ellipse`).
+        transfer_min_growth: a transferred circle larger than the consistent one it was
+            carried through counts (as the rim's outer edge) only if it lies in that one's
+            plane and is at least this much larger (`ring_choice.coplanar_outer`): a wall's
+            base or outline lies a few % outside the rim and, for a short wall far away,
+            within the plane test's reach.
     """
 
     max_rms_px: float = 0.6
@@ -109,11 +119,15 @@ class StereoRingConfig:
     known_ring: KnownRing | None = None
     behind_sigma: float | None = 3.0
     transfer: bool = True
+    transfer_min_growth: float = 1.06
 
     def __post_init__(self) -> None:
         b = self.behind_sigma
         if b is not None and not (math.isfinite(b) and b > 0):
             raise ValueError(f"stereo_ring.behind_sigma must be > 0 or null, got {b}")
+        g = self.transfer_min_growth
+        if not (math.isfinite(g) and g >= 1.0):
+            raise ValueError(f"stereo_ring.transfer_min_growth must be >= 1, got {g}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -582,8 +596,11 @@ class StereoFrontend:
     ) -> list[tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]]:
         """Consistent pairs made of a camera's candidate that paired with nothing and the
         edge found where it falls in the other camera at the depth of the largest consistent
-        circle (`transferred_ellipse`, `RingTracker.refine_at`); only circles smaller than
-        that one (the rim inside an edge that may lie behind it)."""
+        circle (`transferred_ellipse`, `RingTracker.refine_at`): circles smaller than that
+        one (the rim inside an edge that may lie behind it), and larger ones in its plane
+        around it (its outer edge: `coplanar_outer`)."""
+        cfg = self.config.stereo_ring
+        assert cfg.behind_sigma is not None
         used = {id(p[cam]) for _, p in found for cam in ("left", "right")}
         reference = found[0][0][0]
         out = []
@@ -600,11 +617,14 @@ class StereoFrontend:
                     circles = self._circles(pair["left"][0], pair["right"][0])
                 except (GeometryFailure, ConicError, np.linalg.LinAlgError):
                     continue
-                if circles[0].radius < reference.radius:
-                    # only a smaller circle can show the reference to lie behind the rim; a
-                    # larger one from a transferred edge is no better founded than the pairs
-                    # the detector gave (an edge beside the transferred one is stereo-
-                    # consistent too, at another depth)
+                if circles[0].radius < reference.radius or coplanar_outer(
+                    reference, circles[0], cfg.behind_sigma, cfg.transfer_min_growth
+                ):
+                    # a smaller circle can show the reference to lie behind the rim; a larger
+                    # one from a transferred edge only counts in the reference's own plane
+                    # around it (the rim's outer edge, that this camera's detector missed):
+                    # an edge beside the transferred one is stereo-consistent too, but at
+                    # another depth, off that plane
                     out.append((circles, pair))
         return out
 
