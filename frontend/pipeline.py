@@ -66,6 +66,7 @@ from satpose.frontend.rim import (
 )
 from satpose.frontend.ring import Detector, RingConfig, RingTracker, contrast_scale
 from satpose.frontend.ring_choice import coplanar_outer, front_choice, transferred_ellipse
+from satpose.frontend.ring_depth import FrontArcsConfig, fit_front_arcs
 from satpose.frontend.ring_outline import OutlineConfig, OutlineFit, fit_ring_outline
 from satpose.frontend.stereo import (
     Circle3D,
@@ -160,6 +161,7 @@ class FrontendConfig:
     stereo_ring: StereoRingConfig = field(default_factory=StereoRingConfig)
     rim: RimFitConfig = field(default_factory=RimFitConfig)
     outline: OutlineConfig = field(default_factory=OutlineConfig)
+    front_arcs: FrontArcsConfig = field(default_factory=FrontArcsConfig)
     corners: CornerConfig = field(default_factory=CornerConfig)
     components: ComponentConfig = field(default_factory=ComponentConfig)
     use_components: bool = True
@@ -715,6 +717,21 @@ class StereoFrontend:
             return circles, chosen
         return [c for _, c, f in fits if f is not None], new_chosen
 
+    def _front_arcs(self, circle: Circle3D, obs: dict[str, EllipseObservation]) -> Circle3D:
+        """The chosen circle refitted on the arcs of the two ellipses' edge points that lie
+        on its plane, not behind it (`satpose.frontend.ring_depth`: a shadow, the base or
+        the outline beside the rim). The ellipses stay as measured (they are what the image
+        trackers follow); a circle whose refit is refused or not needed stays as it was."""
+        fit = fit_front_arcs(
+            self.rig,
+            circle,
+            obs["left"].edge_points_px,
+            obs["right"].edge_points_px,
+            self.config.front_arcs,
+            radius_prior=self._radius_prior(),
+        )
+        return circle if fit is None else _inflate(fit.circle, self.config.stereo_ring, self.rig)
+
     def _reprojected(
         self,
         circle: Circle3D,
@@ -791,7 +808,8 @@ class StereoFrontend:
     ) -> RingMeasurement | None:
         """Resolve the circle's two-fold ambiguity: the section whose normal agrees with the
         plane of the panel landmarks (they sit on the face that carries the ring), else with
-        the predicted motion, else the best fit."""
+        the predicted motion, else the best fit; then refitted on its front arcs
+        (`front_arcs`, `_front_arcs`)."""
         if not circles:
             return None
         chosen = circles[0]
@@ -806,6 +824,8 @@ class StereoFrontend:
                     "ring: normal ambiguous (no landmarks, no motion yet); "
                     "the best-fitting section was taken"
                 )
+        if self.config.front_arcs.enabled:
+            chosen = self._front_arcs(chosen, obs)
         cfg = self.config.stereo_ring
         if self._radii and chosen.radius > float(np.median(self._radii)) * (
             1 + cfg.max_radius_change
