@@ -289,13 +289,15 @@ class Decision:
     Attributes:
         frame: position of the frame in the sequence (0-based, in the order given).
         candidate: the index of the reported candidate among that frame's, or None.
-        log_lr: the reporting track's log-likelihood ratio over the best track that disagrees
-            at this frame (or the null track); NaN when the frame had no candidate.
+        log_lr: the answering track's log-likelihood ratio over the best track that
+            disagrees at this frame (or the null track); NaN when the frame had no candidate.
         reason: why nothing is reported ("" when a candidate is).
         tracks: how many tracks were alive.
-        pose: the reporting track's fitted pose at this frame (the candidate's measured
-            quantities weighed with the motion) or, where the track leaves the frame out,
-            its prediction there (`SequenceLabeller._answer_at`); or None.
+        pose: the answering track's fitted pose at this frame (the candidate's measured
+            quantities weighed with the motion; the best track's, or where it leaves the
+            frame out the best track of the same hypothesis that explains it) or, where no
+            track of the hypothesis explains it, that track's prediction there
+            (`SequenceLabeller._answer_at`); or None.
     """
 
     frame: int
