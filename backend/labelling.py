@@ -289,12 +289,15 @@ class Decision:
     Attributes:
         frame: position of the frame in the sequence (0-based, in the order given).
         candidate: the index of the reported candidate among that frame's, or None.
-        log_lr: the reporting track's log-likelihood ratio over the best track that disagrees
-            at this frame (or the null track); NaN when the frame had no candidate.
+        log_lr: the answering track's log-likelihood ratio over the best track that
+            disagrees at this frame (or the null track); NaN when the frame had no candidate.
         reason: why nothing is reported ("" when a candidate is).
         tracks: how many tracks were alive.
-        pose: the reporting track's fitted pose at this frame (the candidate's measured
-            quantities weighed with the motion), or None.
+        pose: the answering track's fitted pose at this frame (the candidate's measured
+            quantities weighed with the motion; the best track's, or where it leaves the
+            frame out the best track of the same hypothesis that explains it) or, where no
+            track of the hypothesis explains it, that track's prediction there
+            (`SequenceLabeller._answer_at`); or None.
     """
 
     frame: int
@@ -598,6 +601,19 @@ class SequenceLabeller:
         i = max(i for i, f in enumerate(ks) if f < k)
         return predict(tr.fit.poses[i], tr.fit.twists[i], self.t_s[k] - self.t_s[ks[i]])
 
+    def _answer_at(self, tr: _Track, k: int) -> Rigid3 | None:
+        """What the track says the pose is at frame ``k``: `_pose_at`, or beyond its ends its
+        constant-twist prediction from the nearest end, at most ``max_gap + 1`` frames away
+        (as far as a track is continued without a candidate); else None."""
+        pose = self._pose_at(tr, k)
+        if pose is not None or len(tr.picks) < 2:
+            return pose
+        end = tr.last if k > tr.last else tr.first
+        if abs(k - end) > self.config.max_gap + 1:
+            return None
+        i = -1 if end == tr.last else 0
+        return predict(tr.fit.poses[i], tr.fit.twists[i], self.t_s[k] - self.t_s[end])
+
     def agree(self, a: Rigid3, b: Rigid3) -> bool:
         """Whether two poses of the target are the same answer: within the rival distance
         (``rival_deg`` in attitude and ``rival_rel`` x range at the centre)."""
@@ -611,12 +627,13 @@ class SequenceLabeller:
         rng = float(np.linalg.norm(a.apply(self.centre[None])[0]))
         return ang > self.config.rival_deg or dist > self.config.rival_rel * rng
 
-    def _rival(self, best: _Track, tr: _Track, k: int) -> bool:
+    def _rival(self, best: _Track, tr: _Track, k: int, mine: Rigid3 | None = None) -> bool:
         """Whether track ``tr`` gives another answer than ``best`` at frame ``k``: its pose
-        there disagrees with ``best``'s, or it has none there (a gap or outside its span)
-        and disagrees with ``best`` at a frame where both have one. A track that agrees
-        wherever both have a pose (e.g. ``best`` without its last frame) is no rival."""
-        mine = self._pose_at(best, k)
+        there disagrees with ``best``'s (``mine``; None: `_pose_at`), or it has none there (a
+        gap or outside its span) and disagrees with ``best`` at a frame where both have one.
+        A track that agrees wherever both have a pose (e.g. ``best`` without its last frame)
+        is no rival."""
+        mine = self._pose_at(best, k) if mine is None else mine
         assert mine is not None
         other = self._pose_at(tr, k)
         if other is not None and k in tr.picks:
@@ -640,15 +657,48 @@ class SequenceLabeller:
             return Decision(k, None, math.nan, "no consistent pose", n)
         null_cost = self.config.miss_cost * self._frames_with_candidates()
         best = min(self.tracks, key=lambda x: x.cost) if self.tracks else None
-        if best is None or k not in best.picks:
+        if best is None:
             return Decision(k, None, 0.0, "the best track has no pose here", n)
+        # who answers for frame k: the best track, or where it leaves the frame out (its
+        # candidates there cost more than a miss, e.g. one strut's taper measured far off
+        # while p1, p2, the directions and the stub lengths fit: tuning seeds 31 and 35) a
+        # track of the same hypothesis (it agrees with the best track wherever both have a
+        # pose): the best one that explains the frame, else the best one that predicts it
+        # (within its span, or at most ``max_gap + 1`` frames beyond its ends) with the
+        # frame's candidate that agrees with that prediction. The answer is then decided as
+        # any other: against every track that disagrees there (the best one included), from
+        # the answering track's cost
+        subject, pick, mine = best, best.picks.get(k), self._pose_at(best, k)
+        if pick is None:
+            family = sorted(
+                [tr for tr in self.tracks if tr is best or self._same_hypothesis(tr, best)],
+                key=lambda x: x.cost,
+            )
+            explain = [tr for tr in family if k in tr.picks]
+            if explain:
+                subject = explain[0]
+                pick, mine = subject.picks[k], self._pose_at(subject, k)
+            else:
+                for tr in family:
+                    mine = self._answer_at(tr, k)
+                    pick = None if mine is None else self._agreeing_candidate(k, mine)
+                    if pick is not None:
+                        subject = tr
+                        break
+                if pick is None:
+                    return Decision(k, None, 0.0, "the best track has no pose here", n)
+        assert pick is not None and mine is not None
         rival = min(
-            [tr.cost for tr in self.tracks if tr is not best and self._rival(best, tr, k)]
+            [
+                tr.cost
+                for tr in self.tracks
+                if tr is not subject and self._rival(subject, tr, k, mine)
+            ]
             + [null_cost]
         )
-        lr = rival - best.cost
+        lr = rival - subject.cost
         if lr >= self.config.log_lr_threshold:
-            return Decision(k, best.picks[k], lr, "", n, self._pose_at(best, k))
+            return Decision(k, pick, lr, "", n, mine)
         return Decision(
             k,
             None,
@@ -657,6 +707,29 @@ class SequenceLabeller:
             f"(need {self.config.log_lr_threshold:.1f}) among {n} tracks",
             n,
         )
+
+    def _same_hypothesis(self, a: _Track, b: _Track) -> bool:
+        """Whether two tracks are one hypothesis: they share a frame, and their fitted poses
+        agree (within the rival distance) at every frame both explain."""
+        ka, kb = sorted(a.picks), sorted(b.picks)
+        common = set(ka) & set(kb)
+        return bool(common) and all(
+            self.agree(a.fit.poses[ka.index(f)], b.fit.poses[kb.index(f)]) for f in common
+        )
+
+    def _agreeing_candidate(self, k: int, pose: Rigid3) -> int | None:
+        """The candidate of frame ``k`` nearest ``pose`` (attitude and position, each over
+        its rival distance) among those that agree with it, or None."""
+        cfg = self.config
+        rng = float(np.linalg.norm(pose.apply(self.centre[None])[0]))
+        near = []
+        for j, c in enumerate(self.candidates[k]):
+            q = c.pose.left_cam_from_target
+            if self._disagree(pose, q):
+                continue
+            ang, dist = _distance(pose, q, self.centre)
+            near.append(((ang / cfg.rival_deg) ** 2 + (dist / (cfg.rival_rel * rng)) ** 2, j))
+        return min(near)[1] if near else None
 
     def online_decision(self) -> Decision:
         """The last frame's report from the frames seen so far."""
