@@ -13,7 +13,7 @@ from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.geometry import Rigid3
 from satpose.datasets.sequence import Calibration
 from satpose.frontend.conics import conic_to_ellipse
-from satpose.frontend.measurements import Camera
+from satpose.frontend.measurements import Camera, RingMeasurement
 from satpose.frontend.pipeline import FrontendConfig, StereoFrontend, StereoRingConfig
 from satpose.frontend.rim import rim_samples
 from satpose.frontend.ring_choice import (
@@ -133,6 +133,17 @@ def _draw(T: Rigid3, rim: Circle3D, skirt: Circle3D, inner_m: float) -> np.ndarr
     return np.clip(cv2.GaussianBlur(small, (0, 0), 0.6) * 255 + 0.5, 0, 255).astype(np.uint8)
 
 
+def _stereo_ring(
+    left: np.ndarray, right: np.ndarray, config: FrontendConfig | None = None
+) -> RingMeasurement:
+    """The ring the frontend measures in one drawn stereo pair of this file's rig."""
+    cam = PinholeCamera(width=W, height=H, K=K)
+    calib = Calibration(left=cam, right=cam, right_from_left=RIGHT_FROM_LEFT)
+    m = StereoFrontend(calib, config).process(0, 0.0, left, right)
+    assert m.ring is not None, m.failures
+    return m.ring
+
+
 def test_drawn_ring_with_a_dark_disc_behind_it_is_measured_on_its_rim() -> None:
     """Drawn stereo images: a ring (rim 0.30 m, face to 0.25 m) 4 m away, tilted 25 deg, in
     front of a dark disc 6 cm behind it and 12 % larger (a base skirt or a cast shadow: a
@@ -143,17 +154,12 @@ def test_drawn_ring_with_a_dark_disc_behind_it_is_measured_on_its_rim() -> None:
     skirt = _moved(rim, -0.06, 0.336)
     left = _draw(Rigid3.identity(), rim, skirt, 0.25)
     right = _draw(RIGHT_FROM_LEFT, rim, skirt, 0.25)
-    cam = PinholeCamera(width=W, height=H, K=K)
-    calib = Calibration(left=cam, right=cam, right_from_left=RIGHT_FROM_LEFT)
-    m = StereoFrontend(calib).process(0, 0.0, left, right)
-    assert m.ring is not None, m.failures
-    assert abs(m.ring.radius_m - 0.30) < 0.002, m.ring.radius_m
-    assert float(np.linalg.norm(m.ring.center_m - rim.center)) < 0.01
+    ring = _stereo_ring(left, right)
+    assert abs(ring.radius_m - 0.30) < 0.002, ring.radius_m
+    assert float(np.linalg.norm(ring.center_m - rim.center)) < 0.01
     cfg = FrontendConfig()
     largest = replace(cfg, stereo_ring=replace(cfg.stereo_ring, behind_sigma=None))
-    m0 = StereoFrontend(calib, largest).process(0, 0.0, left, right)
-    assert m0.ring is not None, m0.failures
-    assert abs(m0.ring.radius_m - 0.336) < 0.005, m0.ring.radius_m
+    assert abs(_stereo_ring(left, right, largest).radius_m - 0.336) < 0.005
 
 
 @pytest.mark.parametrize("bad", [0.99, math.nan])
@@ -207,14 +213,9 @@ def test_outer_rim_that_one_camera_misses_is_carried_from_the_other() -> None:
     rim = _circle(np.array([0.15, 0.05, 4.0]), 25.0, 0.30, 0.0)
     left = _draw_patch(Rigid3.identity(), rim, 0.25, 0.0)
     right = _draw_patch(RIGHT_FROM_LEFT, rim, 0.25, 0.46)
-    cam = PinholeCamera(width=W, height=H, K=K)
-    calib = Calibration(left=cam, right=cam, right_from_left=RIGHT_FROM_LEFT)
-    m = StereoFrontend(calib).process(0, 0.0, left, right)
-    assert m.ring is not None, m.failures
-    assert abs(m.ring.radius_m - 0.30) < 0.002, m.ring.radius_m
-    assert float(np.linalg.norm(m.ring.center_m - rim.center)) < 0.01
+    ring = _stereo_ring(left, right)
+    assert abs(ring.radius_m - 0.30) < 0.002, ring.radius_m
+    assert float(np.linalg.norm(ring.center_m - rim.center)) < 0.01
     cfg = FrontendConfig()
     off = replace(cfg, stereo_ring=replace(cfg.stereo_ring, transfer_min_growth=1e9))
-    m0 = StereoFrontend(calib, off).process(0, 0.0, left, right)
-    assert m0.ring is not None, m0.failures
-    assert abs(m0.ring.radius_m - 0.25) < 0.002, m0.ring.radius_m
+    assert abs(_stereo_ring(left, right, off).radius_m - 0.25) < 0.002
