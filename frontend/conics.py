@@ -182,7 +182,12 @@ def refine_ellipse(
     x = init.params.copy()
     t = None  # the points' foot parameters, carried from one iteration to the next
     for _ in range(iterations):
+        if min(abs(x[2]), abs(x[3])) < 1e-6:
+            raise ConicError("ellipse refinement degenerated (an axis reached zero)")
         r, J, t = _orthogonal_residuals(p, x, t)
+        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+            # checked before LAPACK sees it: a NaN there prints to stderr
+            raise ConicError("ellipse refinement diverged (non-finite residuals)")
         try:
             step = np.linalg.lstsq(J, -r, rcond=None)[0]
         except np.linalg.LinAlgError:

@@ -108,6 +108,13 @@ class StereoRingConfig:
             plane and is at least this much larger (`ring_choice.coplanar_outer`): a wall's
             base or outline lies a few % outside the rim and, for a short wall far away,
             within the plane test's reach.
+        sweep: when one camera's acquisition finds no ring candidate at all and the other
+            does, look for the other's candidates along their epipolar lines
+            (`StereoFrontend._swept`): each is shifted through the disparities of
+            ``sweep_range_m`` in steps of ``sweep_step_px`` and refined on edges there.
+        sweep_range_m: nearest and farthest ring distance the sweep covers [m].
+        sweep_step_px: the sweep's step along the epipolar line [px] (below the refinement's
+            edge search half-width, so that no disparity falls between two steps).
     """
 
     max_rms_px: float = 0.6
@@ -121,6 +128,9 @@ class StereoRingConfig:
     behind_sigma: float | None = 3.0
     transfer: bool = True
     transfer_min_growth: float = 1.06
+    sweep: bool = True
+    sweep_range_m: tuple[float, float] = (1.0, 30.0)
+    sweep_step_px: float = 1.5
 
     def __post_init__(self) -> None:
         b = self.behind_sigma
@@ -129,6 +139,11 @@ class StereoRingConfig:
         g = self.transfer_min_growth
         if not (math.isfinite(g) and g >= 1.0):
             raise ValueError(f"stereo_ring.transfer_min_growth must be >= 1, got {g}")
+        lo, hi = self.sweep_range_m
+        if not (0 < lo < hi and math.isfinite(hi)):
+            raise ValueError(f"stereo_ring.sweep_range_m must be 0 < near < far, got {lo}, {hi}")
+        if not (math.isfinite(self.sweep_step_px) and self.sweep_step_px > 0):
+            raise ValueError(f"stereo_ring.sweep_step_px must be > 0, got {self.sweep_step_px}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -500,6 +515,11 @@ class StereoFrontend:
                 last_error = error or last_error
                 if circles:
                     circles, chosen = self._one_locator(circles, chosen, imgs)
+        if not circles and acquired and self.config.stereo_ring.sweep:
+            # one camera found candidates, the other nothing at all: its detector missed the
+            # ring (a thin dark rim on busy foil); look along the epipolar lines instead
+            with timer("ring_sweep"):
+                circles, chosen = self._swept(options, imgs)
         if not circles:
             failures += [
                 f"ring ({cam}): no ring-like ellipse found" for cam, o in options.items() if not o
@@ -629,6 +649,74 @@ class StereoFrontend:
                     # another depth, off that plane
                     out.append((circles, pair))
         return out
+
+    def _swept(
+        self,
+        options: dict[str, list[tuple[EllipseObservation, int]]],
+        imgs: dict[str, PreparedImage],
+    ) -> tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]:
+        """The ring when one camera's acquisition found candidates and the other none: each
+        candidate (at most three, largest first) carried into the other image along the
+        epipolar line of its centre, through the disparities of ``sweep_range_m`` in steps of
+        ``sweep_step_px`` (its shape kept, its size scaled by the focal lengths), and refined
+        on edges at every step; of the pairs that make a consistent 3-D circle, the one with
+        the smallest RMS. Nothing when no pair does."""
+        best: tuple[float, list[Circle3D], dict[str, tuple[EllipseObservation, int]]] | None
+        best = None
+        for src, dst in (("left", "right"), ("right", "left")):
+            if options.get(dst) or not options.get(src):
+                continue
+            image_s = self.rings[dst].smoothed_for_edges(imgs[dst])
+            K_src = self.rig.K_left if src == "left" else self.rig.K_right
+            K_dst = self.rig.K_right if src == "left" else self.rig.K_left
+            scale = float(K_dst[0, 0] / K_src[0, 0])
+            for cand, pol in options[src][:3]:
+                for centre in self._epipolar_steps(Camera(src), cand.center_px):
+                    e = Ellipse(
+                        cx=float(centre[0]),
+                        cy=float(centre[1]),
+                        a=float(cand.axes_px[0]) * scale,
+                        b=float(cand.axes_px[1]) * scale,
+                        theta=float(cand.angle_rad),
+                    )
+                    other = self.rings[dst].refine_at(imgs[dst], e, pol, image_s)
+                    if other is None:
+                        continue
+                    pair = {src: (cand, pol), dst: other}
+                    try:
+                        circles = self._circles(pair["left"][0], pair["right"][0])
+                    except (GeometryFailure, ConicError, np.linalg.LinAlgError):
+                        continue
+                    rms = circle_rms(
+                        self.rig,
+                        circles[0],
+                        pair["left"][0].edge_points_px,
+                        pair["right"][0].edge_points_px,
+                    )
+                    if best is None or rms < best[0]:
+                        best = (rms, circles, pair)
+        return ([], {}) if best is None else (best[1], best[2])
+
+    def _epipolar_steps(self, src: Camera, pixel: np.ndarray) -> np.ndarray:
+        """Where a point seen at ``pixel`` in camera ``src`` falls in the other camera at the
+        distances of ``sweep_range_m``, in steps of ``sweep_step_px`` (equal steps of
+        inverse distance are equal steps of disparity), (M, 2)."""
+        cfg = self.config.stereo_ring
+        T = self.rig.right_from_left
+        K_src = self.rig.K_left if src is Camera.LEFT else self.rig.K_right
+        ray = np.linalg.inv(K_src) @ np.array([pixel[0], pixel[1], 1.0])
+        ray /= np.linalg.norm(ray)
+
+        def image(z: np.ndarray) -> np.ndarray:
+            X = z[:, None] * ray  # in the source camera's frame
+            if src is Camera.LEFT:
+                return self.rig.project(X)[1]
+            return self.rig.project((X - T.t) @ T.R)[0]  # right frame -> left frame
+
+        near, far = cfg.sweep_range_m
+        ends = image(np.array([near, far]))
+        n = max(2, math.ceil(float(np.linalg.norm(ends[0] - ends[1])) / cfg.sweep_step_px) + 1)
+        return image(1.0 / np.linspace(1.0 / far, 1.0 / near, n))
 
     def _radius_prior(self) -> tuple[float, float] | None:
         known = self.config.stereo_ring.known_ring

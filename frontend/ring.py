@@ -580,19 +580,29 @@ class RingTracker:
         return best
 
     def refine_at(
-        self, image: PreparedImage, e: Ellipse, polarity: int
+        self,
+        image: PreparedImage,
+        e: Ellipse,
+        polarity: int,
+        image_s: np.ndarray | None = None,
     ) -> tuple[EllipseObservation, int] | None:
         """The edge near a given ellipse ``e`` (e.g. another camera's candidate transferred
         through 3-D), refined like a detection: with ``polarity``, else with mixed polarity;
-        None where no well-supported edge lies within ``edge_search_px``."""
+        None where no well-supported edge lies within ``edge_search_px``. ``image_s``: the
+        image smoothed for edges, if already made (`smoothed_for_edges`)."""
         if image.problem is not None:
             return None
-        image_s = smoothed(image.gray, self.config.edges)
+        if image_s is None:
+            image_s = self.smoothed_for_edges(image)
         for pol in dict.fromkeys((polarity, 0)):
             refined = self._refine(image_s, image.gray, e, pol)
             if refined is not None:
                 return self._observation(refined, "detected"), pol
         return None
+
+    def smoothed_for_edges(self, image: PreparedImage) -> np.ndarray:
+        """The image as the sub-pixel edge search reads it (for repeated `refine_at`)."""
+        return smoothed(image.gray, self.config.edges)
 
     def commit(self, obs: EllipseObservation, image: PreparedImage, polarity: int) -> None:
         """Keep ``obs`` as the track for the next frame."""
