@@ -659,10 +659,10 @@ class StereoFrontend:
         candidate (at most three, largest first) carried into the other image along the
         epipolar line of its centre, through the disparities of ``sweep_range_m`` in steps of
         ``sweep_step_px`` (its shape kept, its size scaled by the focal lengths), and refined
-        on edges at every step; of the pairs that make a consistent 3-D circle, the one with
-        the smallest RMS. Nothing when no pair does."""
-        best: tuple[float, list[Circle3D], dict[str, tuple[EllipseObservation, int]]] | None
-        best = None
+        on edges at every step; per candidate the consistent pair with the smallest RMS, and
+        of those the one `_pair`'s rule takes (the largest not shown to lie behind the
+        ring's front). Nothing when no pair is consistent."""
+        found: list[tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]] = []
         for src, dst in (("left", "right"), ("right", "left")):
             if options.get(dst) or not options.get(src):
                 continue
@@ -671,6 +671,8 @@ class StereoFrontend:
             K_dst = self.rig.K_right if src == "left" else self.rig.K_left
             scale = float(K_dst[0, 0] / K_src[0, 0])
             for cand, pol in options[src][:3]:
+                best: tuple[float, list[Circle3D], dict[str, tuple[EllipseObservation, int]]]
+                best = (math.inf, [], {})
                 for centre in self._epipolar_steps(Camera(src), cand.center_px):
                     e = Ellipse(
                         cx=float(centre[0]),
@@ -693,9 +695,16 @@ class StereoFrontend:
                         pair["left"][0].edge_points_px,
                         pair["right"][0].edge_points_px,
                     )
-                    if best is None or rms < best[0]:
+                    if rms < best[0]:
                         best = (rms, circles, pair)
-        return ([], {}) if best is None else (best[1], best[2])
+                if best[1]:
+                    found.append((best[1], best[2]))
+        if not found:
+            return [], {}
+        found.sort(key=lambda f: -f[0][0].radius)
+        behind = self.config.stereo_ring.behind_sigma
+        k = 0 if behind is None else front_choice([f[0][0] for f in found], behind)
+        return found[k][0], found[k][1]
 
     def _epipolar_steps(self, src: Camera, pixel: np.ndarray) -> np.ndarray:
         """Where a point seen at ``pixel`` in camera ``src`` falls in the other camera at the

@@ -219,3 +219,27 @@ def test_outer_rim_that_one_camera_misses_is_carried_from_the_other() -> None:
     cfg = FrontendConfig()
     off = replace(cfg, stereo_ring=replace(cfg.stereo_ring, transfer_min_growth=1e9))
     assert abs(_stereo_ring(left, right, off).radius_m - 0.25) < 0.002
+
+
+def test_sweep_finds_the_ring_in_the_camera_whose_detector_found_nothing() -> None:
+    """Drawn stereo images of the ring of the test above (4 m): with the left camera's
+    candidates discarded, the sweep along the epipolar lines of the right camera's
+    candidates finds the left ring and the pair makes the rim's circle (radius within 2 mm,
+    centre within 1 cm); with no candidate in either camera there is nothing to sweep."""
+    rim = _circle(np.array([0.15, 0.05, 4.0]), 25.0, 0.30, 0.0)
+    images = {
+        "left": _draw_patch(Rigid3.identity(), rim, 0.25, 0.0),
+        "right": _draw_patch(RIGHT_FROM_LEFT, rim, 0.25, 0.0),
+    }
+    cam = PinholeCamera(width=W, height=H, K=K)
+    fe = StereoFrontend(Calibration(left=cam, right=cam, right_from_left=RIGHT_FROM_LEFT))
+    imgs = {c: fe.undistort[c](images[c]) for c in images}
+    options = {"left": [], "right": fe.rings["right"].acquire(imgs["right"])}
+    assert options["right"]
+    circles, pair = fe._swept(options, imgs)
+    assert circles, "the sweep found no consistent pair"
+    outer = [c for c in circles if abs(c.radius - 0.30) < 0.002]
+    assert outer, [c.radius for c in circles]
+    assert float(np.linalg.norm(outer[0].center - rim.center)) < 0.01
+    assert set(pair) == {"left", "right"}
+    assert fe._swept({"left": [], "right": []}, imgs) == ([], {})
