@@ -182,8 +182,8 @@ def refine_ellipse(
     x = init.params.copy()
     t = None  # the points' foot parameters, carried from one iteration to the next
     for _ in range(iterations):
-        if min(abs(x[2]), abs(x[3])) < 1e-6:
-            raise ConicError("ellipse refinement degenerated (an axis reached zero)")
+        if not np.all(np.isfinite(x)) or min(abs(x[2]), abs(x[3])) < 1e-6:
+            raise ConicError("ellipse refinement degenerated (an axis reached zero or infinity)")
         r, J, t = _orthogonal_residuals(p, x, t)
         if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
             # checked before LAPACK sees it: a NaN there prints to stderr
@@ -249,7 +249,8 @@ def _orthogonal_residuals(
     ex, ey = a * ct, b * st
     nx, ny = b * ct, a * st
     nn = np.hypot(nx, ny)
-    nx, ny = nx / nn, ny / nn  # outward unit normal in the ellipse frame
+    with np.errstate(divide="ignore", invalid="ignore"):  # non-finite: refused by the caller
+        nx, ny = nx / nn, ny / nn  # outward unit normal in the ellipse frame
     r = (u - ex) * nx + (v - ey) * ny
     # d r / d params at the foot point (the foot parameter is stationary).
     J = np.empty((p.shape[0], 5))

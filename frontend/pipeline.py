@@ -576,12 +576,8 @@ class StereoFrontend:
             return [], {}, last_error
         if imgs is not None and cfg.behind_sigma is not None and cfg.transfer:
             found += self._transferred(options, found, imgs)
-        if len(found) > 1:
-            found.sort(key=lambda f: -f[0][0].radius)
-            assert cfg.behind_sigma is not None
-            k = front_choice([f[0][0] for f in found], cfg.behind_sigma)
-            return found[k][0], found[k][1], None
-        return found[0][0], found[0][1], None
+        circles, pair = self._front_of(found)
+        return circles, pair, None
 
     def _one_locator(
         self,
@@ -667,9 +663,9 @@ class StereoFrontend:
             if options.get(dst) or not options.get(src):
                 continue
             image_s = self.rings[dst].smoothed_for_edges(imgs[dst])
-            K_src = self.rig.K_left if src == "left" else self.rig.K_right
-            K_dst = self.rig.K_right if src == "left" else self.rig.K_left
-            scale = float(K_dst[0, 0] / K_src[0, 0])
+            scale = float(
+                self.rig.intrinsics(Camera(dst))[0, 0] / self.rig.intrinsics(Camera(src))[0, 0]
+            )
             for cand, pol in options[src][:3]:
                 best: tuple[float, list[Circle3D], dict[str, tuple[EllipseObservation, int]]]
                 best = (math.inf, [], {})
@@ -701,7 +697,15 @@ class StereoFrontend:
                     found.append((best[1], best[2]))
         if not found:
             return [], {}
-        found.sort(key=lambda f: -f[0][0].radius)
+        return self._front_of(found)
+
+    def _front_of(
+        self, found: list[tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]]
+    ) -> tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]:
+        """Of consistent pairs (their circles best first, and the pair), the one whose
+        circle is the ring's outer front rim: the largest that no smaller one shows to lie
+        behind the ring's front (`front_choice`; without ``behind_sigma``, the largest)."""
+        found = sorted(found, key=lambda f: -f[0][0].radius)
         behind = self.config.stereo_ring.behind_sigma
         k = 0 if behind is None else front_choice([f[0][0] for f in found], behind)
         return found[k][0], found[k][1]
@@ -711,16 +715,12 @@ class StereoFrontend:
         distances of ``sweep_range_m``, in steps of ``sweep_step_px`` (equal steps of
         inverse distance are equal steps of disparity), (M, 2)."""
         cfg = self.config.stereo_ring
-        T = self.rig.right_from_left
-        K_src = self.rig.K_left if src is Camera.LEFT else self.rig.K_right
-        ray = np.linalg.inv(K_src) @ np.array([pixel[0], pixel[1], 1.0])
-        ray /= np.linalg.norm(ray)
+        other = Camera.RIGHT if src is Camera.LEFT else Camera.LEFT
+        centre, rays = self.rig.rays(src, pixel)
+        ray = rays[0] / np.linalg.norm(rays[0])
 
         def image(z: np.ndarray) -> np.ndarray:
-            X = z[:, None] * ray  # in the source camera's frame
-            if src is Camera.LEFT:
-                return self.rig.project(X)[1]
-            return self.rig.project((X - T.t) @ T.R)[0]  # right frame -> left frame
+            return self.rig.project_into(other, centre + z[:, None] * ray)
 
         near, far = cfg.sweep_range_m
         ends = image(np.array([near, far]))

@@ -172,8 +172,7 @@ class RimFit:
 
 def camera_centers(rig: StereoRig) -> tuple[np.ndarray, np.ndarray]:
     """Left and right camera centres in the left camera frame [m]."""
-    T = rig.right_from_left
-    return np.zeros(3), -T.R.T @ T.t
+    return rig.center(Camera.LEFT), rig.center(Camera.RIGHT)
 
 
 def rim_samples(circle: Circle3D, n: int) -> tuple[np.ndarray, np.ndarray]:

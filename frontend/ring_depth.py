@@ -54,7 +54,6 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2
 
-from satpose.datasets.geometry import Rigid3
 from satpose.frontend.conics import sampson_distance
 from satpose.frontend.measurements import Camera
 from satpose.frontend.stereo import (
@@ -145,6 +144,16 @@ def _group_medians(
     return out
 
 
+def _pooled_spread(values: np.ndarray, groups: np.ndarray, min_points: int) -> float:
+    """Robust spread (1.4826 MAD) of ``values`` around their group's median, pooled over the
+    groups with at least ``min_points`` members (NaN if none)."""
+    med = _group_medians(values, groups, min_points)
+    dev = [values[groups == q] - m for q, (m, _) in med.items()]
+    if not dev:
+        return math.nan
+    return 1.4826 * float(np.median(np.abs(np.concatenate(dev))))
+
+
 @lru_cache(maxsize=256)
 def _chi2_limit(level: float, dof: int) -> float:
     return float(chi2.ppf(level, dof))
@@ -172,11 +181,7 @@ class ArcDepths:
 
     def image_spread(self, min_points: int) -> float:
         """Pooled robust spread of ``r`` around each arc's median [px] (NaN if none)."""
-        med = self.offsets(min_points)
-        dev = [self.r[self.sector == q] - m for q, (m, _) in med.items()]
-        if not dev:
-            return math.nan
-        return 1.4826 * float(np.median(np.abs(np.concatenate(dev))))
+        return _pooled_spread(self.r, self.sector, min_points)
 
     def medians(self, min_points: int) -> dict[int, tuple[float, int]]:
         """Per judged arc (at least ``min_points`` judged points): median ``z`` and count."""
@@ -184,11 +189,7 @@ class ArcDepths:
 
     def spread(self, min_points: int) -> float:
         """Pooled robust spread of ``z`` around each judged arc's median [px] (NaN if none)."""
-        med = self.medians(min_points)
-        dev = [self.z[self.judged & (self.sector == q)] - m for q, (m, _) in med.items()]
-        if not dev:
-            return math.nan
-        return 1.4826 * float(np.median(np.abs(np.concatenate(dev))))
+        return _pooled_spread(self.z[self.judged], self.sector[self.judged], min_points)
 
 
 @dataclass(frozen=True)
@@ -224,14 +225,7 @@ class _Matcher:
         self.other = Camera.RIGHT if cam is Camera.LEFT else Camera.LEFT
         pts = np.asarray(points, float).reshape(-1, 2)
         self.points = pts
-        if cam is Camera.LEFT:
-            K, R, C = rig.K_left, np.eye(3), np.zeros(3)
-        else:
-            T = rig.right_from_left
-            K, R, C = rig.K_right, T.R, -T.R.T @ T.t
-        self.C, self.K = C, K
-        self.cam_from_left = Rigid3.identity() if cam is Camera.LEFT else rig.right_from_left
-        self.rays = (np.c_[pts, np.ones(len(pts))] @ np.linalg.inv(K).T) @ R  # left frame
+        self.C, self.rays = rig.rays(cam, pts)  # left frame
         centre = pts.mean(axis=0)
         angle = np.arctan2(pts[:, 1] - centre[1], pts[:, 0] - centre[0])
         self.sector = (
@@ -239,8 +233,8 @@ class _Matcher:
             % config.sectors
         )
         # the epipolar line of each point: two points of its ray, projected
-        near = self._project(C + 2.0 * self.rays)
-        far = self._project(C + 200.0 * self.rays)
+        near = rig.project_into(self.other, self.C + 2.0 * self.rays)
+        far = rig.project_into(self.other, self.C + 200.0 * self.rays)
         direction = far - near
         direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
         self.away = direction
@@ -249,10 +243,6 @@ class _Matcher:
         self.hit_point, self.hit_index, self.hit_cos = self._crossings(
             lines, np.asarray(other_points, float).reshape(-1, 2)
         )
-
-    def _project(self, X: np.ndarray) -> np.ndarray:
-        pl, pr = self.rig.project(X)
-        return pl if self.other is Camera.LEFT else pr
 
     def _crossings(
         self, lines: np.ndarray, curve: np.ndarray
@@ -283,7 +273,7 @@ class _Matcher:
         nrm = np.asarray(circle.normal, float)
         with np.errstate(divide="ignore", invalid="ignore"):
             s = ((circle.center - self.C) @ nrm) / (self.rays @ nrm)
-        pred = self._project(self.C + s[:, None] * self.rays)
+        pred = self.rig.project_into(self.other, self.C + s[:, None] * self.rays)
         z = np.full(len(s), np.nan)
         judged = np.zeros(len(s), bool)
         if self.hit_index.size:
@@ -298,7 +288,10 @@ class _Matcher:
             d = np.sum((self.hit_point[first] - pred[j]) * self.away[j], axis=1)
             z[j] = d * self.hit_cos[first]
             judged[j] = self.hit_cos[first] >= cfg.min_cos
-        conic = circle_conic(self.K, self.cam_from_left, circle.center, nrm, circle.radius)
+        rig, cam = self.rig, self.cam
+        conic = circle_conic(
+            rig.intrinsics(cam), rig.cam_from_left(cam), circle.center, nrm, circle.radius
+        )
         return ArcDepths(z, judged, self.sector, sampson_distance(self.points, conic))
 
 
@@ -365,7 +358,7 @@ def fit_front_arcs(
         _Matcher(rig, lp, rp, Camera.LEFT, cfg),
         _Matcher(rig, rp, lp, Camera.RIGHT, cfg),
     )
-    null = (matchers[0].depths(circle), matchers[1].depths(circle))
+    null = _depths(matchers, circle)
     spreads = (
         null[0].spread(cfg.min_points),
         null[0].image_spread(cfg.min_points),
@@ -373,11 +366,8 @@ def fit_front_arcs(
     )
     if not all(math.isfinite(v) for v in spreads):
         return None
-    sigma = (
-        max(spreads[0], cfg.sigma_floor_px),
-        max(spreads[1], cfg.sigma_floor_px),
-        max(spreads[2], cfg.sigma_floor_px),
-    )
+    s_z, s_left, s_right = (max(v, cfg.sigma_floor_px) for v in spreads)
+    sigma = (s_z, s_left, s_right)
     if _verdict(null, frozenset(), sigma, cfg)[0]:
         return None
     for span in range(1, cfg.max_span + 1):
@@ -385,21 +375,18 @@ def fit_front_arcs(
         for start in range(cfg.sectors):
             removed = frozenset((start + k) % cfg.sectors for k in range(span))
             # the search refits in two Gauss-Newton steps from the all-points circle
-            fit = _refit(rig, circle, lp, rp, matchers, removed, 2, radius_prior)
+            fit, _ = _refit(rig, circle, matchers, removed, 2, radius_prior)
             if fit is None:
                 continue
-            ok, t, _ = _verdict(
-                (matchers[0].depths(fit), matchers[1].depths(fit)), removed, sigma, cfg
-            )
+            ok, t, _ = _verdict(_depths(matchers, fit), removed, sigma, cfg)
             if ok:
                 passed.append((t, removed))
         for _, removed in sorted(passed, key=lambda p: p[0]):
-            fit = _refit(rig, circle, lp, rp, matchers, removed, 6, radius_prior)
+            fit, keep = _refit(rig, circle, matchers, removed, 6, radius_prior)
             if fit is None:
                 continue
-            arcs = (matchers[0].depths(fit), matchers[1].depths(fit))
+            arcs = _depths(matchers, fit)
             ok, t, dof = _verdict(arcs, removed, sigma, cfg)
-            keep = [~np.isin(m.sector, list(removed)) for m in matchers]
             rms = circle_rms(rig, fit, lp[keep[0]], rp[keep[1]])
             if ok and rms <= cfg.max_rms_px:
                 return FrontArcsFit(
@@ -410,34 +397,41 @@ def fit_front_arcs(
     return None
 
 
+def _depths(matchers: tuple[_Matcher, _Matcher], circle: Circle3D) -> tuple[ArcDepths, ArcDepths]:
+    """Both images' points judged against ``circle`` (left, right)."""
+    return matchers[0].depths(circle), matchers[1].depths(circle)
+
+
 def _refit(
     rig: StereoRig,
     circle: Circle3D,
-    lp: np.ndarray,
-    rp: np.ndarray,
     matchers: tuple[_Matcher, _Matcher],
     removed: frozenset[int],
     iterations: int,
     radius_prior: tuple[float, float] | None,
-) -> Circle3D | None:
+) -> tuple[Circle3D | None, tuple[np.ndarray, np.ndarray]]:
     """``circle`` refined on both images' points outside the ``removed`` arcs (None if too
-    few are left or the fit fails)."""
-    keep = [~np.isin(m.sector, list(removed)) for m in matchers]
+    few are left or the fit fails), and which points those are (left, right)."""
+    keep = (
+        ~np.isin(matchers[0].sector, list(removed)),
+        ~np.isin(matchers[1].sector, list(removed)),
+    )
     if keep[0].sum() < 6 or keep[1].sum() < 6:
-        return None
+        return None, keep
     try:
-        return refine_circle(
+        fit = refine_circle(
             rig,
             circle.center,
             circle.normal,
             circle.radius,
-            lp[keep[0]],
-            rp[keep[1]],
+            matchers[0].points[keep[0]],
+            matchers[1].points[keep[1]],
             iterations=iterations,
             radius_prior=radius_prior,
         )
     except (GeometryFailure, np.linalg.LinAlgError):
-        return None
+        return None, keep
+    return fit, keep
 
 
 def arc_depths(

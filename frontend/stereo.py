@@ -17,6 +17,7 @@ from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix, skew
 from satpose.datasets.sequence import Calibration
 from satpose.frontend.conics import sampson_distance
+from satpose.frontend.measurements import Camera
 
 
 class GeometryFailure(SatposeError):
@@ -67,6 +68,33 @@ class StereoRig:
         Xr = self.right_from_left.apply(X)
         pr = Xr @ self.K_right.T
         return pl[:, :2] / pl[:, 2:], pr[:, :2] / pr[:, 2:]
+
+    def intrinsics(self, cam: Camera) -> np.ndarray:
+        """``K`` of camera ``cam``."""
+        return self.K_left if cam is Camera.LEFT else self.K_right
+
+    def cam_from_left(self, cam: Camera) -> Rigid3:
+        """The transform from the left camera's frame into camera ``cam``'s."""
+        return Rigid3.identity() if cam is Camera.LEFT else self.right_from_left
+
+    def center(self, cam: Camera) -> np.ndarray:
+        """Camera ``cam``'s centre in the left camera frame [m]."""
+        T = self.cam_from_left(cam)
+        return -T.R.T @ T.t
+
+    def rays(self, cam: Camera, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The rays of camera ``cam`` through undistorted ``pixels`` (N, 2), in the left
+        camera frame: the camera's centre (3,) and the directions (N, 3), each reaching depth
+        1 in ``cam``'s own frame (not unit length)."""
+        px = np.asarray(pixels, float).reshape(-1, 2)
+        T = self.cam_from_left(cam)
+        d = (np.c_[px, np.ones(len(px))] @ np.linalg.inv(self.intrinsics(cam)).T) @ T.R
+        return self.center(cam), d
+
+    def project_into(self, cam: Camera, points_left: np.ndarray) -> np.ndarray:
+        """Project left-frame points (N, 3) into camera ``cam``'s image, (N, 2)."""
+        pl, pr = self.project(points_left)
+        return pl if cam is Camera.LEFT else pr
 
 
 def triangulate(
