@@ -43,7 +43,6 @@ from typing import Literal
 
 import numpy as np
 
-from satpose.datasets.geometry import Rigid3
 from satpose.frontend.conics import ConicError, Ellipse, conic_to_ellipse, sampson_distance
 from satpose.frontend.edges import EdgeSearchConfig, edges_of_polarity
 from satpose.frontend.measurements import Camera, EllipseObservation
@@ -292,11 +291,8 @@ def shadow_band(
     h0 = 1e-3 * circle.radius  # a small height: the band's width is linear in it
     Q = P - h0 * v / (v @ normal)[:, None]
     out = []
-    cams = (
-        (rig.K_left, Rigid3.identity(), s_cams[0]),
-        (rig.K_right, rig.right_from_left, s_cams[1]),
-    )
-    for K, T, s_cam in cams:
+    for cam, s_cam in zip((Camera.LEFT, Camera.RIGHT), s_cams, strict=True):
+        K, T = rig.intrinsics(cam), rig.cam_from_left(cam)
         conic = circle_conic(K, T, circle.center, circle.normal, circle.radius)
         x = (Q @ T.R.T + T.t) @ K.T
         q = x[:, :2] / x[:, 2:3]
@@ -346,10 +342,7 @@ def fit_outer_rim(
     Raises:
         GeometryFailure: too few rim edge points in a camera, or the refit failed.
     """
-    cams = (
-        (rig.K_left, Rigid3.identity()),
-        (rig.K_right, rig.right_from_left),
-    )
+    cams = tuple((rig.intrinsics(c), rig.cam_from_left(c)) for c in (Camera.LEFT, Camera.RIGHT))
     half = config.search_px
     keep = config.labels == "light" and config.keep_normal and config.shadow == "drop"
     kept: list[np.ndarray] = [np.zeros((0, 2)), np.zeros((0, 2))]
@@ -449,14 +442,7 @@ def projected_observation(
     Raises:
         GeometryFailure: the projection is not an ellipse.
     """
-    K, T = (
-        (rig.K_left, Rigid3.identity())
-        if camera is Camera.LEFT
-        else (
-            rig.K_right,
-            rig.right_from_left,
-        )
-    )
+    K, T = rig.intrinsics(camera), rig.cam_from_left(camera)
 
     def params(x: np.ndarray) -> np.ndarray:
         n = x[3:6] / np.linalg.norm(x[3:6])

@@ -60,7 +60,6 @@ from satpose.frontend.stereo import (
     Circle3D,
     GeometryFailure,
     StereoRig,
-    circle_conic,
     circle_rms,
     refine_circle,
 )
@@ -288,10 +287,7 @@ class _Matcher:
             d = np.sum((self.hit_point[first] - pred[j]) * self.away[j], axis=1)
             z[j] = d * self.hit_cos[first]
             judged[j] = self.hit_cos[first] >= cfg.min_cos
-        rig, cam = self.rig, self.cam
-        conic = circle_conic(
-            rig.intrinsics(cam), rig.cam_from_left(cam), circle.center, nrm, circle.radius
-        )
+        conic = self.rig.circle_conic(self.cam, circle)
         return ArcDepths(z, judged, self.sector, sampson_distance(self.points, conic))
 
 

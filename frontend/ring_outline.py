@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from satpose.datasets.geometry import Rigid3
+from satpose.frontend.measurements import Camera
 from satpose.frontend.stereo import (
     Circle3D,
     GeometryFailure,
@@ -219,9 +220,9 @@ def fit_ring_outline(
     Raises:
         GeometryFailure: too few points, or no start converged to a finite outline.
     """
-    cams = (
-        (rig.K_left, Rigid3.identity(), np.asarray(left_points, float).reshape(-1, 2)),
-        (rig.K_right, rig.right_from_left, np.asarray(right_points, float).reshape(-1, 2)),
+    cams = tuple(
+        (rig.intrinsics(c), rig.cam_from_left(c), np.asarray(p, float).reshape(-1, 2))
+        for c, p in ((Camera.LEFT, left_points), (Camera.RIGHT, right_points))
     )
     if min(len(p) for _, _, p in cams) < 12:
         raise GeometryFailure("ring outline: too few edge points")

@@ -91,6 +91,16 @@ class StereoRig:
         d = (np.c_[px, np.ones(len(px))] @ np.linalg.inv(self.intrinsics(cam)).T) @ T.R
         return self.center(cam), d
 
+    def circle_conic(self, cam: Camera, circle: Circle3D) -> np.ndarray:
+        """Image conic of a left-frame ``circle`` in camera ``cam`` (`circle_conic`)."""
+        return circle_conic(
+            self.intrinsics(cam),
+            self.cam_from_left(cam),
+            circle.center,
+            circle.normal,
+            circle.radius,
+        )
+
     def project_into(self, cam: Camera, points_left: np.ndarray) -> np.ndarray:
         """Project left-frame points (N, 3) into camera ``cam``'s image, (N, 2)."""
         pl, pr = self.project(points_left)
@@ -561,18 +571,8 @@ def circle_rms(
     """RMS first-order distance [px] of both images' edge points to the circle's images."""
     r = np.concatenate(
         [
-            sampson_distance(
-                left_points,
-                circle_conic(
-                    rig.K_left, Rigid3.identity(), circle.center, circle.normal, circle.radius
-                ),
-            ),
-            sampson_distance(
-                right_points,
-                circle_conic(
-                    rig.K_right, rig.right_from_left, circle.center, circle.normal, circle.radius
-                ),
-            ),
+            sampson_distance(points, rig.circle_conic(cam, circle))
+            for cam, points in ((Camera.LEFT, left_points), (Camera.RIGHT, right_points))
         ]
     )
     return float(np.sqrt(np.mean(r**2)))
