@@ -50,10 +50,18 @@ class Covariances:
         self._marginals: gtsam.Marginals | None = None
         self._dense: np.ndarray | None = None
         self._index: dict[int, slice] = {}
+        self._graph, self._values = graph, values
         try:
             self._marginals = gtsam.Marginals(graph, values)
         except RuntimeError:
             self._dense_covariance(graph, values)
+
+    def _fall_back(self) -> None:
+        """GTSAM's marginals can also fail per variable, after their construction succeeded
+        (a nearly indeterminate variable: seen on tuning seed 14's warm-up at 1024x768); the
+        dense QR route then decides (`_dense_covariance`: a covariance, or a clear error)."""
+        self._marginals = None
+        self._dense_covariance(self._graph, self._values)
 
     def _dense_covariance(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
         ordering = gtsam.Ordering()
@@ -63,7 +71,12 @@ class Covariances:
             dim = values.atVector(key).size if _is_vector(values, key) else 6
             self._index[key] = slice(start, start + dim)
             start += dim
-        A, _ = graph.linearize(values).jacobian(ordering)
+        try:
+            A, _ = graph.linearize(values).jacobian(ordering)
+        except ValueError as exc:  # GTSAM: a variable that no factor involves
+            raise BackendError(
+                "the estimate is not determined (a variable without factors)"
+            ) from exc
         if A.shape[0] < A.shape[1]:
             raise BackendError("the estimate is not determined (fewer residuals than unknowns)")
         R: np.ndarray = np.linalg.qr(A, mode="r")  # type: ignore[assignment]
@@ -75,7 +88,10 @@ class Covariances:
     def marginal(self, key: int) -> np.ndarray:
         """Marginal covariance of one variable."""
         if self._marginals is not None:
-            return np.asarray(self._marginals.marginalCovariance(key), float)
+            try:
+                return np.asarray(self._marginals.marginalCovariance(key), float)
+            except RuntimeError:
+                self._fall_back()
         assert self._dense is not None
         s = self._index[key]
         return self._dense[s, s].copy()
@@ -83,8 +99,11 @@ class Covariances:
     def joint(self, keys: list[int]) -> list[list[np.ndarray]]:
         """Joint marginal covariance of ``keys`` as a nested list of blocks."""
         if self._marginals is not None:
-            J = self._marginals.jointMarginalCovariance(gtsam.KeyVector(keys))
-            return [[np.asarray(J.at(a, b), float) for b in keys] for a in keys]
+            try:
+                J = self._marginals.jointMarginalCovariance(gtsam.KeyVector(keys))
+                return [[np.asarray(J.at(a, b), float) for b in keys] for a in keys]
+            except RuntimeError:
+                self._fall_back()
         assert self._dense is not None
         return [[self._dense[self._index[a], self._index[b]] for b in keys] for a in keys]
 
