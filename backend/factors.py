@@ -68,11 +68,12 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import gtsam
+import gtsam_unstable
 import numpy as np
 from scipy.stats import chi2
 
 from satpose.backend.errors import BackendError
-from satpose.backend.keys import DISPARITY_BIAS, L, R, V, X
+from satpose.backend.keys import DISPARITY_BIAS, RIG, L, R, V, X
 from satpose.backend.pose3 import (
     ROT,
     TRANS,
@@ -134,6 +135,11 @@ class MeasurementConfig:
             (0.2 makes the smoothers' covariances honest there); off by default because the
             landmarks then fix the depth alone, and their own depth bias shows
             (docs/backend.md, "The ring's common disparity bias").
+        landmark_disparity_bias_px: standard deviation [px] of a disparity error common to
+            every landmark (tight, stereo; None, the default: none): the right-image
+            observations see the right camera through the variable ``RIG``, the calibrated
+            ``left_from_right`` whose yaw is free with a prior of ``sigma / f`` [rad] (a yaw
+            ``d`` moves every right-image point by ``f d`` across: a disparity error).
         spin_rate: turn accepted spin-rate measurements (`FrameMeasurements.spin`) into
             factors on ``|omega|``. Only windows disjoint from the last one used are taken:
             consecutive sliding windows share all but one frame, and as independent factors
@@ -155,6 +161,7 @@ class MeasurementConfig:
     max_orb_per_frame: int | None = 20
     spin_rate: bool = True
     ring_disparity_bias_px: float | None = None
+    landmark_disparity_bias_px: float | None = None
 
     def __post_init__(self) -> None:
         if self.coupling not in ("loose", "tight"):
@@ -170,6 +177,9 @@ class MeasurementConfig:
         b = self.ring_disparity_bias_px
         if b is not None and not (math.isfinite(b) and b > 0):
             raise BackendError(f"ring_disparity_bias_px must be > 0 or null, got {b}")
+        b = self.landmark_disparity_bias_px
+        if b is not None and not (math.isfinite(b) and b > 0):
+            raise BackendError(f"landmark_disparity_bias_px must be > 0 or null, got {b}")
         if self.max_orb_per_frame is not None and self.max_orb_per_frame < 0:
             raise BackendError(f"max_orb_per_frame must be >= 0, got {self.max_orb_per_frame}")
         object.__setattr__(
@@ -366,14 +376,31 @@ def landmark_factors(
 ) -> list[gtsam.NonlinearFactor]:
     """Reprojection factors of a tracked point on ``(X(i), L(track_id))``: the left image and,
     for a stereo observation, the right one (GTSAM C++ projection factors; a point behind a
-    camera gives a constant error instead of an exception)."""
+    camera gives a constant error instead of an exception). With
+    ``landmark_disparity_bias_px`` the right one is on ``(X(i), RIG, L(track_id))`` (gtsam's
+    ``ProjectionFactorPPP``: the camera at ``X(i) RIG``); the caller adds ``RIG``."""
     noise = robust(gtsam.noiseModel.Isotropic.Sigma(2, float(m.sigma_px)), 2, config)
     out: list[gtsam.NonlinearFactor] = [
         gtsam.GenericProjectionFactorCal3_S2(
             np.asarray(m.left_px, float), noise, X(i), L(m.track_id), rig.cal_left, False, False
         )
     ]
-    if m.right_px is not None and rig.cal_right is not None and rig.left_from_right is not None:
+    if m.right_px is None or rig.cal_right is None or rig.left_from_right is None:
+        return out
+    if config.landmark_disparity_bias_px is not None:
+        out.append(
+            gtsam_unstable.ProjectionFactorPPPCal3_S2(
+                np.asarray(m.right_px, float),
+                noise,
+                X(i),
+                RIG,
+                L(m.track_id),
+                rig.cal_right,
+                False,
+                False,
+            )
+        )
+    else:
         out.append(
             gtsam.GenericProjectionFactorCal3_S2(
                 np.asarray(m.right_px, float),

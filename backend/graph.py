@@ -39,7 +39,7 @@ from satpose.backend.factors import (
     ring_radius_factor,
     spin_rate_factor,
 )
-from satpose.backend.keys import DISPARITY_BIAS, L, R, V, X
+from satpose.backend.keys import DISPARITY_BIAS, RIG, L, R, V, X
 from satpose.backend.motion import (
     MotionConfig,
     constant_twist_factor,
@@ -95,6 +95,7 @@ class GraphBuilder:
         self._sightings: dict[int, int] = {}  # sightings of the landmarks in the graph
         self.circles: list[list[float]] = []  # the radii measured of each circle of the ring
         self._bias_in_graph = False  # DISPARITY_BIAS and its prior added
+        self._rig_in_graph = False  # RIG and its prior added
         self.full_frames = 0  # frames whose measurements fix a whole pose
         self._pending: list[FrameMeasurements] = []
         self._spin_until_s = -np.inf  # end of the last spin-rate window used
@@ -276,6 +277,24 @@ class GraphBuilder:
         baseline = float(np.linalg.norm(self.rig.left_from_right.translation()))
         return float(self.rig.cal_left.fx()) * baseline
 
+    def _rig_variable(self, update: GraphUpdate) -> None:
+        """``RIG`` and its prior (the calibrated ``left_from_right``, its yaw free by
+        ``landmark_disparity_bias_px / f``) before the first landmark factor that uses it."""
+        sigma = self.config.landmark_disparity_bias_px
+        if sigma is None or self._rig_in_graph or self.rig.left_from_right is None:
+            return
+        fixed = 1e-6  # [rad], [m]: the rest of the calibration as it is
+        yaw = sigma / float(self.rig.cal_right.fx())
+        update.values.insert(RIG, self.rig.left_from_right)
+        update.factors.push_back(
+            gtsam.PriorFactorPose3(
+                RIG,
+                self.rig.left_from_right,
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([fixed, yaw, fixed, *[fixed] * 3])),
+            )
+        )
+        self._rig_in_graph = True
+
     def _circle(self, radius_m: float) -> int:
         """The circle of the ring a measured radius belongs to: the known circle whose median
         radius is nearest, if within ``ring_circle_gap`` (relative); else a new one
@@ -335,6 +354,7 @@ class GraphBuilder:
                 if orb_left <= 0:
                     continue
                 orb_left -= 1
+            self._rig_variable(update)
             if not known:
                 # second sighting (or the anchor): the landmark enters the graph, with its
                 # first sighting, initialised there from the current pose of that frame

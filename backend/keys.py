@@ -11,6 +11,11 @@
   the two cameras see the rim's edge profile differently (a wall, a shadow's sliver, a glint
   seen from two viewpoints), a bias that averaging over frames does not remove
   (`satpose.backend.factors.ring_factor`).
+- ``RIG``: the right camera's pose in the left camera's frame as the landmarks' right-image
+  observations see it (Pose3): the calibrated ``left_from_right`` with its yaw free within a
+  prior, i.e. a disparity error common to every landmark (a rig whose cameras turned against
+  each other since calibration, or corner and feature locators biased differently in the two
+  images; `satpose.backend.factors.landmark_factors`).
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ __all__ = [
     "POSE_CHAR",
     "RADIUS",
     "RADIUS_CHAR",
+    "RIG",
+    "RIG_CHAR",
     "TWIST_CHAR",
     "L",
     "R",
@@ -36,6 +43,8 @@ RADIUS = R(0)
 """The first circle's radius."""
 DISPARITY_BIAS = gtsam.symbol("d", 0)
 """The ring edges' common disparity bias [px]."""
+RIG = gtsam.symbol("c", 0)
+"""The rig's ``left_from_right`` as the landmarks see it."""
 
 # The symbol characters (per-type settings such as iSAM2's relinearisation thresholds).
 POSE_CHAR = chr(gtsam.Symbol(X(0)).chr())
@@ -43,3 +52,4 @@ TWIST_CHAR = chr(gtsam.Symbol(V(0)).chr())
 LANDMARK_CHAR = chr(gtsam.Symbol(L(0)).chr())
 RADIUS_CHAR = chr(gtsam.Symbol(RADIUS).chr())
 BIAS_CHAR = chr(gtsam.Symbol(DISPARITY_BIAS).chr())
+RIG_CHAR = chr(gtsam.Symbol(RIG).chr())

@@ -41,6 +41,7 @@ from satpose.backend.keys import (
     LANDMARK_CHAR,
     POSE_CHAR,
     RADIUS_CHAR,
+    RIG_CHAR,
     TWIST_CHAR,
     L,
     V,
@@ -180,6 +181,7 @@ class OnlineEstimator:
             (LANDMARK_CHAR, np.full(3, config.relinearize_landmark)),
             (RADIUS_CHAR, np.full(1, config.relinearize_radius)),
             (BIAS_CHAR, np.full(1, config.relinearize_bias)),
+            (RIG_CHAR, np.full(6, 1e-5)),  # only its yaw moves (by bias / f: ~1e-4 rad)
         )
         for char, value in thresholds_by_char:
             thresholds.insert((char, value))
@@ -379,7 +381,7 @@ class OnlineEstimator:
         if window is None:
             return None
         for key in values.keys():
-            if chr(gtsam.Symbol(key).chr()) in (LANDMARK_CHAR, RADIUS_CHAR, BIAS_CHAR):
+            if chr(gtsam.Symbol(key).chr()) in (LANDMARK_CHAR, RADIUS_CHAR, BIAS_CHAR, RIG_CHAR):
                 self._entered[key] = newest
         if first:  # the warm-up graph enters at once: nothing to hold yet
             return None

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from satpose.backend.errors import BackendError
 from satpose.backend.factors import (
     MeasurementConfig,
     StereoRig,
@@ -23,6 +24,7 @@ from satpose.backend.factors import (
     ring_radius_factor,
 )
 from satpose.backend.keys import DISPARITY_BIAS, RADIUS, L, X
+from satpose.backend.keys import RIG as RIG_KEY
 from satpose.backend.pose3 import exp, to_state
 from satpose.datasets.geometry import Rigid3
 from satpose.datasets.scenarios import preset
@@ -271,3 +273,34 @@ def test_pose_method_enum_is_accepted() -> None:
         left_cam_from_target=T_TRUE, covariance=np.eye(6) * 1e-4, method=PoseMethod.RING_LANDMARK
     )
     assert pose_factor(m, 0, MeasurementConfig()).keys() == [X(0)]
+
+
+@pytest.mark.parametrize("name", ["ring_disparity_bias_px", "landmark_disparity_bias_px"])
+@pytest.mark.parametrize("value", [0.0, -0.1, float("nan"), float("inf")])
+def test_disparity_bias_sigmas_are_checked(name: str, value: float) -> None:
+    with pytest.raises(BackendError, match=name):
+        MeasurementConfig(**{name: value})
+
+
+def test_right_landmark_factor_sees_the_rig_variable() -> None:
+    """With ``landmark_disparity_bias_px`` the right-image factor is on (X, RIG, L) and, at
+    the calibrated rig, has the error of the plain stereo factor; a yaw of the right camera
+    by ``d`` moves its error across by about ``f d``."""
+    m = _landmark(T_TRUE, P_TARGET, True)
+    plain = landmark_factors(m, 0, RIG, NO_ROBUST)[1]
+    cfg = replace(NO_ROBUST, landmark_disparity_bias_px=0.2)
+    biased = landmark_factors(m, 0, RIG, cfg)[1]
+    assert set(biased.keys()) == {X(0), RIG_KEY, L(m.track_id)}
+    v = gtsam.Values()
+    v.insert(X(0), to_state(T_TRUE))
+    v.insert(L(m.track_id), P_TARGET)
+    v.insert(RIG_KEY, RIG.left_from_right)
+    e0 = plain.unwhitenedError(v)
+    np.testing.assert_allclose(biased.unwhitenedError(v), e0, atol=1e-9)
+    d = 1e-4
+    turned = RIG.left_from_right.compose(gtsam.Pose3(gtsam.Rot3.Ry(d), np.zeros(3)))
+    v.update(RIG_KEY, turned)
+    shift = biased.unwhitenedError(v) - e0
+    f = RIG.cal_right.fx()
+    assert abs(abs(shift[0]) - f * d) < 0.05 * f * d, shift
+    assert abs(shift[1]) < 0.1 * f * d, shift
