@@ -61,6 +61,13 @@ class StrutDetectorConfig:
         blur_sigma_px: Gaussian smoothing before LSD (rendering / sensor noise) [px].
         min_segment_px: shortest LSD segment kept [px].
         max_angle_deg: two edges of one bar, or two pieces of one strut, differ by at most this.
+        short_edge_px: paper's view, the short-edge pass only (`partial_candidates` with
+            ``short_edges``): two edges of one bar may also differ in direction by
+            ``atan(short_edge_px / l)``, ``l`` the shorter edge's length [px]: the offset at
+            its end that the terminator's curve and the taper make on a thick short stub
+            (a strut 16 px wide and 40 px long: its two LSD edges 4-5 deg apart, bracket
+            family tuning seed 20). Longer than ``short_edge_px / tan(max_angle_deg)``
+            (76 px at the defaults), ``max_angle_deg`` holds as before.
         bar_width_px: (min, max) distance between the two edges of a strut [px].
         merge_distance_px: collinear bars closer than this (centre lines) are one strut [px].
         candidates: the longest this many strut candidates enter the hypothesis search.
@@ -120,6 +127,7 @@ class StrutDetectorConfig:
     blur_sigma_px: float = 1.2
     min_segment_px: float = 15.0
     max_angle_deg: float = 3.0
+    short_edge_px: float = 4.0
     bar_width_px: tuple[float, float] = (3.0, 120.0)
     merge_distance_px: float = 4.0
     candidates: int = 8
@@ -277,9 +285,12 @@ def line_segments(image: np.ndarray, config: StrutDetectorConfig) -> np.ndarray:
     return seg[length >= config.min_segment_px]
 
 
-def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> list[Strut]:
+def _bars(
+    image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig, short_edges: bool = False
+) -> list[Strut]:
     """Bright bars: pairs of parallel segments with brighter pixels between them (the same
-    bars whatever the order and direction of ``seg``'s rows)."""
+    bars whatever the order and direction of ``seg``'s rows). ``short_edges``: two short
+    edges may differ in direction by more than ``max_angle_deg`` (``short_edge_px``)."""
     seg = canonical_segments(seg)
     h, w = image.shape[:2]
     img = image.astype(np.float32)
@@ -297,7 +308,8 @@ def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> li
     length = np.linalg.norm(d, axis=1)
     u = d / length[:, None]
     bars: list[Strut] = []
-    for i, j in _parallel_pairs(p, q, u, length, config):
+    end_px = config.short_edge_px if short_edges else 0.0
+    for i, j in _parallel_pairs(p, q, u, length, config, end_px):
         ui = u[i]
         n = np.array([-ui[1], ui[0]])
         mid_j = 0.5 * (p[j] + q[j])
@@ -338,22 +350,30 @@ def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> li
 
 
 def _parallel_pairs(
-    p: np.ndarray, q: np.ndarray, u: np.ndarray, length: np.ndarray, config: StrutDetectorConfig
+    p: np.ndarray,
+    q: np.ndarray,
+    u: np.ndarray,
+    length: np.ndarray,
+    config: StrutDetectorConfig,
+    end_px: float = 0.0,
 ) -> list[tuple[int, int]]:
-    """Index pairs ``i < j`` of segments that are parallel within ``max_angle_deg``, whose
-    separation is within ``bar_width_px`` and that overlap along ``i`` by at least half the
-    shorter one: the cheap tests of `_bars`, in numpy, in the order of
+    """Index pairs ``i < j`` of segments that are parallel within ``max_angle_deg`` (or,
+    with ``end_px`` > 0, within ``atan(end_px / l)``, ``l`` the shorter one's length, if
+    that is more), whose separation is within ``bar_width_px`` and that overlap along ``i``
+    by at least half the shorter one: the cheap tests of `_bars`, in numpy, in the order of
     ``itertools.combinations`` (a solar array's cell grid gives thousands of segments)."""
     n = len(p)
     if n < 2:
         return []
-    cos_max = math.cos(math.radians(config.max_angle_deg))
+    max_rad = math.radians(config.max_angle_deg)
     out: list[tuple[int, int]] = []
     normal = np.stack([-u[:, 1], u[:, 0]], axis=1)
     mid = 0.5 * (p + q)
     for i in range(n - 1):
         j = np.arange(i + 1, n)
-        ok = np.abs(u[j] @ u[i]) >= cos_max
+        shorter = np.minimum(length[i], length[j])
+        tol = np.maximum(max_rad, np.arctan2(end_px, shorter)) if end_px > 0 else max_rad
+        ok = np.abs(u[j] @ u[i]) >= np.cos(tol)
         sep = np.abs((mid[j] - p[i]) @ normal[i])
         ok &= (sep >= config.bar_width_px[0]) & (sep <= config.bar_width_px[1])
         a = (p[j] - p[i]) @ u[i]
@@ -1778,12 +1798,16 @@ def silhouette_candidates(
 
 
 def partial_candidates(
-    image: np.ndarray, config: StrutDetectorConfig, silhouette: bool = True
+    image: np.ndarray,
+    config: StrutDetectorConfig,
+    silhouette: bool = True,
+    short_edges: bool = False,
 ) -> tuple[np.ndarray, list[Strut]] | StrutDetection:
     """LSD segments and strut candidates (longest support first) of a grey (or BGR) image,
     or a `StrutDetection` with the reason when there are too few. ``silhouette``: each
     candidate moved to the strut's silhouette where its bar is only the lit part
-    (`_silhouette_refit`); False: the bars as found."""
+    (`_silhouette_refit`); False: the bars as found. ``short_edges``: two short edges may
+    pair into a bar at a larger angle (``config.short_edge_px``: a thick short stub)."""
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -1793,7 +1817,9 @@ def partial_candidates(
     if len(seg) < 2:
         return StrutDetection(None, None, seg, reason=f"only {len(seg)} line segments")
     scaled = _scaled(img)
-    cands = sorted(_merge(_bars(scaled, seg, config), config), key=lambda c: -c.support_px)
+    cands = sorted(
+        _merge(_bars(scaled, seg, config, short_edges), config), key=lambda c: -c.support_px
+    )
     cands = _finished(scaled, cands, config, silhouette)
     if len(cands) < 3:
         return StrutDetection(

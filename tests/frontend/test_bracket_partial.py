@@ -241,3 +241,89 @@ def test_partial_candidates_without_the_silhouette_refit_keep_the_bars() -> None
     for a, b in zip(later[1], refit[1], strict=True):
         for fa, fb in zip(astuple(a), astuple(b), strict=True):
             np.testing.assert_array_equal(fa, fb)
+
+
+def segment_pair(length_px: float, angle_deg: float, sep_px: float = 16.0) -> np.ndarray:
+    """Two segments ``length_px`` long, ``sep_px`` apart at their middles, the second turned
+    ``angle_deg`` about its middle: a bar's two edges, ``(2, 4)`` rows ``x0, y0, x1, y1``."""
+    a = math.radians(angle_deg)
+    h = 0.5 * length_px
+    first = [100.0 - h, 100.0, 100.0 + h, 100.0]
+    c, s = math.cos(a), math.sin(a)
+    second = [100.0 - h * c, 100.0 + sep_px - h * s, 100.0 + h * c, 100.0 + sep_px + h * s]
+    return np.array([first, second])
+
+
+def pairs_of(seg: np.ndarray, cfg: StrutDetectorConfig, end_px: float) -> list[tuple[int, int]]:
+    p, q = seg[:, :2], seg[:, 2:]
+    length = np.linalg.norm(q - p, axis=1)
+    return bl._parallel_pairs(p, q, (q - p) / length[:, None], length, cfg, end_px)
+
+
+def test_short_edges_pair_at_the_angle_their_length_allows() -> None:
+    """Two edges of a bar pair within ``max_angle_deg`` (3 deg); in the short-edge pass also
+    within ``atan(short_edge_px / l)`` of the shorter edge's length ``l`` (4 px: 5.7 deg at
+    40 px, 3.0 deg from 76 px on). Exact segments: the tolerance is the whole test."""
+    cfg = StrutDetectorConfig()
+    end = cfg.short_edge_px
+    # a thick short stub (tuning seed 20: 40 px edges 4.2-4.5 deg apart)
+    assert pairs_of(segment_pair(40.0, 4.5), cfg, 0.0) == []
+    assert pairs_of(segment_pair(40.0, 4.5), cfg, end) == [(0, 1)]
+    assert pairs_of(segment_pair(40.0, 6.5), cfg, end) == []  # beyond atan(4 / 40) = 5.7
+    # long edges: the short-edge rule adds nothing
+    assert pairs_of(segment_pair(100.0, 4.5), cfg, end) == []
+    assert pairs_of(segment_pair(100.0, 2.5), cfg, 0.0) == [(0, 1)]
+    assert pairs_of(segment_pair(100.0, 2.5), cfg, end) == [(0, 1)]
+
+
+def wedge_image(length_px: float, angle_deg: float, seed: int) -> tuple[np.ndarray, float]:
+    """A bright bar on a dark noisy background whose two long edges are ``angle_deg`` apart
+    (16 px wide at its middle, ``length_px`` long, axis along +x at y = 60), drawn at 8x and
+    box-filtered, read noise 2 DN (seeded). Returns the image and the bisector's angle from
+    +x [deg]."""
+    s = 8
+    w, h = 240, 120
+    big = np.full((h * s, w * s), 20, np.uint8)
+    half_a = 0.5 * math.radians(angle_deg)
+    x0, x1, xm = 120.0 - 0.5 * length_px, 120.0 + 0.5 * length_px, 120.0
+
+    def y_of(x: float, side: float) -> float:
+        # each edge turned half the angle about the bar's middle, in opposite senses
+        return 60.0 + side * (8.0 + (x - xm) * math.tan(half_a))
+
+    quad = np.array([(x0, y_of(x0, -1)), (x1, y_of(x1, -1)), (x1, y_of(x1, 1)), (x0, y_of(x0, 1))])
+    cv2.fillPoly(big, [np.round((quad + 0.5) * s - 0.5).astype(np.int32)], 200)
+    img = cv2.resize(big, (w, h), interpolation=cv2.INTER_AREA).astype(float)
+    img += np.random.default_rng(seed).normal(0, 2.0, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8), 0.0
+
+
+def test_short_wedge_bar_forms_only_in_the_short_edge_pass() -> None:
+    """A thick short bar (16 px wide, 44 px long) whose edges are 4.5 deg apart (a stub's
+    silhouette and the edge that its junction or the terminator bends): no bar at the long
+    struts' 3 deg; a bar in the short-edge pass, along the bisector (within 1 deg: the two
+    edges' directions weighed by their lengths) and 16 px wide (within 2 px). A long bar
+    (150 px) with the same angle forms none in either pass."""
+    cfg = StrutDetectorConfig()
+    for seed in (0, 1, 2):
+        img, axis_deg = wedge_image(44.0, 4.5, seed)
+        seg = bl.line_segments(img, cfg)
+        scaled = img.astype(np.float32) * (255.0 / float(img.max()))
+
+        def along(bars: list[bl.Strut]) -> list[bl.Strut]:
+            return [b for b in bars if abs(b.point[1] - 60.0) < 3.0 and b.width_px > 10.0]
+
+        assert along(bl._bars(scaled, seg, cfg)) == [], seed
+        bars = along(bl._bars(scaled, seg, cfg, short_edges=True))
+        assert len(bars) >= 1, seed
+        bar = max(bars, key=lambda b: b.support_px)
+        ang = math.degrees(math.atan2(bar.direction[1], bar.direction[0]))
+        ang = (ang + 90.0) % 180.0 - 90.0
+        assert abs(ang - axis_deg) < 1.0, (seed, ang)
+        assert abs(bar.width_px - 16.0) < 2.0, (seed, bar.width_px)
+        img, _ = wedge_image(150.0, 4.5, seed)
+        seg = bl.line_segments(img, cfg)
+        # both long edges are found (the test is of their pairing, not of LSD)
+        assert int(np.sum(np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1]) > 100)) == 2
+        scaled = img.astype(np.float32) * (255.0 / float(img.max()))
+        assert along(bl._bars(scaled, seg, cfg, short_edges=True)) == [], seed
