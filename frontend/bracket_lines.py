@@ -474,13 +474,13 @@ def _observation(
 def _exterior_stub(stub: Strut, inside: np.ndarray) -> Strut:
     """A short-edge bar (``stub.edges`` set) as a side strut whose triangle lies toward the
     image point ``inside``: its centre line along the *exterior* edge, half its width in.
-    Where a stub leaves the base, its interior edge meets the base's interior edge in a
-    concave corner, where the two struts' images and shading overlap over about a strut
-    width; on a stub only a few widths long that bends the whole interior LSD edge toward the
-    base (bracket family tuning seed 20: interior edges 4.2-4.6 deg off toward the base,
-    exterior 0.1-1.2 deg; their mean 2.4-3.0 deg off, and the apex, five stub lengths on,
-    moves with it). The exterior edge runs round the convex outside of the junction.
-    Other candidates are returned as they are."""
+    On a thick short stub the interior edge is the one that bends: where a stub leaves the
+    base its interior edge meets the base's in a concave corner (the two struts' images and
+    shading overlap over about a strut width), and on a side-lit stub it can be the
+    terminator of the lit half. Over a stub two or three widths long that turns the whole
+    LSD edge (bracket family tuning seed 20: interior edges 4.6 and 5.4 deg off, toward the
+    base's direction; exterior 0.1 and 1.2 deg; their mean 2.4-3.0 deg off, and the apex,
+    five stub lengths on, moves with it). Other candidates are returned as they are."""
     if stub.edges is None:
         return stub
     n = np.array([-stub.direction[1], stub.direction[0]])
