@@ -289,8 +289,8 @@ def run_bracket(
                                 det, cands = det_refit, refit
                         if det.result is None and not det.alternatives:
                             # still none: a thick short stub's two edges differ in direction
-                            # by more than a long strut's (the terminator's curve and the
-                            # taper over a few widths; tuning seed 20: 4-5 deg at 40 px), so
+                            # by more than a long strut's (its interior edge bent by the
+                            # junction or a terminator; tuning seed 20: 4-5 deg at 40 px), so
                             # its bar did not form. Pair short edges at their larger angle,
                             # the bars as found and then at their silhouettes. Only here:
                             # more bars elsewhere (the cell grid) only add hypotheses
