@@ -61,6 +61,13 @@ class StrutDetectorConfig:
         blur_sigma_px: Gaussian smoothing before LSD (rendering / sensor noise) [px].
         min_segment_px: shortest LSD segment kept [px].
         max_angle_deg: two edges of one bar, or two pieces of one strut, differ by at most this.
+        short_edge_px: paper's view, the short-edge pass only (`partial_candidates` with
+            ``short_edges``): two edges of one bar may also differ in direction by
+            ``atan(short_edge_px / l)``, ``l`` the shorter edge's length [px]: the offset at
+            its end that the terminator's curve and the taper make on a thick short stub
+            (a strut 16 px wide and 40 px long: its two LSD edges 4-5 deg apart, bracket
+            family tuning seed 20). Longer than ``short_edge_px / tan(max_angle_deg)``
+            (76 px at the defaults), ``max_angle_deg`` holds as before.
         bar_width_px: (min, max) distance between the two edges of a strut [px].
         merge_distance_px: collinear bars closer than this (centre lines) are one strut [px].
         candidates: the longest this many strut candidates enter the hypothesis search.
@@ -120,6 +127,7 @@ class StrutDetectorConfig:
     blur_sigma_px: float = 1.2
     min_segment_px: float = 15.0
     max_angle_deg: float = 3.0
+    short_edge_px: float = 4.0
     bar_width_px: tuple[float, float] = (3.0, 120.0)
     merge_distance_px: float = 4.0
     candidates: int = 8
@@ -156,6 +164,11 @@ class Strut:
 
     ``taper`` (`measure_taper`): the log ratio of its image widths at ``s = taper_span[1]``
     and ``taper_span[0]`` with its standard deviation ``taper_sigma``; NaN: not measured.
+
+    ``edges``: a bar of the short-edge pass whose two edges differ in direction by more than
+    ``max_angle_deg``: its two edge lines ``(2, 4)``, rows ``x, y, ux, uy`` (a point and the
+    unit direction); None otherwise. Which of them is the stub's silhouette is told by the
+    stub's role in a hypothesis (`_exterior_stub`).
     """
 
     point: np.ndarray
@@ -168,6 +181,7 @@ class Strut:
     taper: float = math.nan
     taper_sigma: float = math.nan
     taper_span: tuple[float, float] = (math.nan, math.nan)
+    edges: np.ndarray | None = None
 
     def end(self, which: int) -> np.ndarray:
         return self.point + (self.s0 if which == 0 else self.s1) * self.direction
@@ -277,9 +291,12 @@ def line_segments(image: np.ndarray, config: StrutDetectorConfig) -> np.ndarray:
     return seg[length >= config.min_segment_px]
 
 
-def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> list[Strut]:
+def _bars(
+    image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig, short_edges: bool = False
+) -> list[Strut]:
     """Bright bars: pairs of parallel segments with brighter pixels between them (the same
-    bars whatever the order and direction of ``seg``'s rows)."""
+    bars whatever the order and direction of ``seg``'s rows). ``short_edges``: two short
+    edges may differ in direction by more than ``max_angle_deg`` (``short_edge_px``)."""
     seg = canonical_segments(seg)
     h, w = image.shape[:2]
     img = image.astype(np.float32)
@@ -297,7 +314,8 @@ def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> li
     length = np.linalg.norm(d, axis=1)
     u = d / length[:, None]
     bars: list[Strut] = []
-    for i, j in _parallel_pairs(p, q, u, length, config):
+    end_px = config.short_edge_px if short_edges else 0.0
+    for i, j in _parallel_pairs(p, q, u, length, config, end_px):
         ui = u[i]
         n = np.array([-ui[1], ui[0]])
         mid_j = 0.5 * (p[j] + q[j])
@@ -323,6 +341,9 @@ def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> li
         pts_c = pts + np.array([0.5, 0.5, -0.5, -0.5])[:, None] * sep * n
         c, dirn, res = _fit_line(pts_c, np.array([length[i]] * 2 + [length[j]] * 2))
         s = (pts_c - c) @ dirn
+        skew = short_edges and abs(float(u[i] @ u[j])) < math.cos(
+            math.radians(config.max_angle_deg)
+        )
         bars.append(
             Strut(
                 point=c,
@@ -332,28 +353,37 @@ def _bars(image: np.ndarray, seg: np.ndarray, config: StrutDetectorConfig) -> li
                 support_px=float(hi - lo),
                 residual_px=res,
                 width_px=abs(sep),
+                edges=np.array([[*p[i], *u[i]], [*p[j], *u[j]]]) if skew else None,
             )
         )
     return bars
 
 
 def _parallel_pairs(
-    p: np.ndarray, q: np.ndarray, u: np.ndarray, length: np.ndarray, config: StrutDetectorConfig
+    p: np.ndarray,
+    q: np.ndarray,
+    u: np.ndarray,
+    length: np.ndarray,
+    config: StrutDetectorConfig,
+    end_px: float = 0.0,
 ) -> list[tuple[int, int]]:
-    """Index pairs ``i < j`` of segments that are parallel within ``max_angle_deg``, whose
-    separation is within ``bar_width_px`` and that overlap along ``i`` by at least half the
-    shorter one: the cheap tests of `_bars`, in numpy, in the order of
+    """Index pairs ``i < j`` of segments that are parallel within ``max_angle_deg`` (or,
+    with ``end_px`` > 0, within ``atan(end_px / l)``, ``l`` the shorter one's length, if
+    that is more), whose separation is within ``bar_width_px`` and that overlap along ``i``
+    by at least half the shorter one: the cheap tests of `_bars`, in numpy, in the order of
     ``itertools.combinations`` (a solar array's cell grid gives thousands of segments)."""
     n = len(p)
     if n < 2:
         return []
-    cos_max = math.cos(math.radians(config.max_angle_deg))
+    max_rad = math.radians(config.max_angle_deg)
     out: list[tuple[int, int]] = []
     normal = np.stack([-u[:, 1], u[:, 0]], axis=1)
     mid = 0.5 * (p + q)
     for i in range(n - 1):
         j = np.arange(i + 1, n)
-        ok = np.abs(u[j] @ u[i]) >= cos_max
+        shorter = np.minimum(length[i], length[j])
+        tol = np.maximum(max_rad, np.arctan2(end_px, shorter)) if end_px > 0 else max_rad
+        ok = np.abs(u[j] @ u[i]) >= np.cos(tol)
         sep = np.abs((mid[j] - p[i]) @ normal[i])
         ok &= (sep >= config.bar_width_px[0]) & (sep <= config.bar_width_px[1])
         a = (p[j] - p[i]) @ u[i]
@@ -400,6 +430,7 @@ def _merge(bars: list[Strut], config: StrutDetectorConfig) -> list[Strut]:
                 width_px=float(
                     sum(g.width_px * g.support_px for g in group) / sum(g.support_px for g in group)
                 ),
+                edges=group[0].edges if len(group) == 1 else None,
             )
         )
     return out
@@ -438,6 +469,31 @@ def _observation(
                     p3 = clamped
     sigma = max(config.min_sigma_px, base.residual_px, s1.residual_px, s2.residual_px)
     return BracketObservation(p1_px=p1, p2_px=p2, p3_px=p3, p4_px=p4, sigma_px=sigma)
+
+
+def _exterior_stub(stub: Strut, inside: np.ndarray) -> Strut:
+    """A short-edge bar (``stub.edges`` set) as a side strut whose triangle lies toward the
+    image point ``inside``: its centre line along the *exterior* edge, half its width in.
+    On a thick short stub the interior edge is the one that bends: where a stub leaves the
+    base its interior edge meets the base's in a concave corner (the two struts' images and
+    shading overlap over about a strut width), and on a side-lit stub it can be the
+    terminator of the lit half. Over a stub two or three widths long that turns the whole
+    LSD edge (bracket family tuning seed 20: interior edges 4.6 and 5.4 deg off, toward the
+    base's direction; exterior 0.1 and 1.2 deg; their mean 2.4-3.0 deg off, and the apex,
+    five stub lengths on, moves with it). Other candidates are returned as they are."""
+    if stub.edges is None:
+        return stub
+    n = np.array([-stub.direction[1], stub.direction[0]])
+    side_in = 1.0 if float((inside - stub.point) @ n) > 0 else -1.0
+    offs = [float((e[:2] - stub.point) @ n) * side_in for e in stub.edges]
+    e = stub.edges[int(np.argmin(offs))]  # the edge farthest from the inside
+    u = e[2:] if float(e[2:] @ stub.direction) > 0 else -e[2:]
+    m = np.array([-u[1], u[0]])
+    m = m if float((inside - e[:2]) @ m) > 0 else -m
+    point = e[:2] + 0.5 * stub.width_px * m
+    ends = np.array([stub.end(0), stub.end(1)])
+    s = (ends - point) @ u
+    return replace(stub, point=point, direction=u, s0=float(s.min()), s1=float(s.max()), edges=None)
 
 
 def _plausible(base: Strut, s1: Strut, s2: Strut, config: StrutDetectorConfig) -> bool:
@@ -1778,12 +1834,16 @@ def silhouette_candidates(
 
 
 def partial_candidates(
-    image: np.ndarray, config: StrutDetectorConfig, silhouette: bool = True
+    image: np.ndarray,
+    config: StrutDetectorConfig,
+    silhouette: bool = True,
+    short_edges: bool = False,
 ) -> tuple[np.ndarray, list[Strut]] | StrutDetection:
     """LSD segments and strut candidates (longest support first) of a grey (or BGR) image,
     or a `StrutDetection` with the reason when there are too few. ``silhouette``: each
     candidate moved to the strut's silhouette where its bar is only the lit part
-    (`_silhouette_refit`); False: the bars as found."""
+    (`_silhouette_refit`); False: the bars as found. ``short_edges``: two short edges may
+    pair into a bar at a larger angle (``config.short_edge_px``: a thick short stub)."""
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -1793,7 +1853,9 @@ def partial_candidates(
     if len(seg) < 2:
         return StrutDetection(None, None, seg, reason=f"only {len(seg)} line segments")
     scaled = _scaled(img)
-    cands = sorted(_merge(_bars(scaled, seg, config), config), key=lambda c: -c.support_px)
+    cands = sorted(
+        _merge(_bars(scaled, seg, config, short_edges), config), key=lambda c: -c.support_px
+    )
     cands = _finished(scaled, cands, config, silhouette)
     if len(cands) < 3:
         return StrutDetection(
@@ -1857,6 +1919,12 @@ def detect_partial(
         if not _plausible(base, s1, s2, cfg):
             why["implausible"] += 1
             continue
+        if s1.edges is not None or s2.edges is not None:
+            # a thick short stub of the short-edge pass: along its exterior edge; the
+            # triangle lies toward the other base vertex
+            q1, q2 = _intersect(base, s1), _intersect(base, s2)
+            if q1 is not None and q2 is not None:
+                s1, s2 = _exterior_stub(s1, q2), _exterior_stub(s2, q1)
         obs = _observation(base, s1, s2, cfg)
         if obs is None:
             continue

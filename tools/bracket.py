@@ -287,6 +287,27 @@ def run_bracket(
                             )
                             if det_refit.result is not None or det_refit.alternatives:
                                 det, cands = det_refit, refit
+                        if det.result is None and not det.alternatives:
+                            # still none: a thick short stub's two edges differ in direction
+                            # by more than a long strut's (its interior edge bent by the
+                            # junction or a terminator; tuning seed 20: 4-5 deg at 40 px), so
+                            # its bar did not form. Pair short edges at their larger angle,
+                            # the bars as found and then at their silhouettes. Only here:
+                            # more bars elsewhere (the cell grid) only add hypotheses
+                            short = partial_candidates(
+                                prep.gray8, det_cfg, silhouette=False, short_edges=True
+                            )
+                            if not isinstance(short, StrutDetection):
+                                det_short = detect_partial(
+                                    prep.gray8, K, geo, partial[0], det_cfg, prepared=short
+                                )
+                                if det_short.result is None and not det_short.alternatives:
+                                    short = silhouette_candidates(prep.gray8, short, det_cfg)
+                                    det_short = detect_partial(
+                                        prep.gray8, K, geo, partial[0], det_cfg, prepared=short
+                                    )
+                                if det_short.result is not None or det_short.alternatives:
+                                    det, cands = det_short, short
                         # also near the best tracks' predictions (a least-squares start
                         # there finds a pose whose P3P pair noise turned complex)
                         near = [
