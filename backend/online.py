@@ -35,7 +35,7 @@ import numpy as np
 from satpose.backend.errors import BackendError
 from satpose.backend.estimate import Estimate, Hook, StepReport
 from satpose.backend.factors import FactorClock, MeasurementConfig
-from satpose.backend.graph import GraphBuilder
+from satpose.backend.graph import GraphBuilder, GraphUpdate
 from satpose.backend.keys import (
     BIAS_CHAR,
     LANDMARK_CHAR,
@@ -143,6 +143,29 @@ class _Filtered:
     twist_cov: np.ndarray
 
 
+def _merged(
+    first: tuple[gtsam.NonlinearFactorGraph, gtsam.Values],
+    then: tuple[gtsam.NonlinearFactorGraph, gtsam.Values],
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """Two updates' factors and new values as one."""
+    factors = gtsam.NonlinearFactorGraph()
+    factors.push_back(first[0])
+    factors.push_back(then[0])
+    values = gtsam.Values(first[1])
+    extra = gtsam.Values(then[1])
+    for key in then[1].keys():
+        if values.exists(key):
+            extra.erase(key)
+    values.insert(extra)
+    return factors, values
+
+
+_UNKNOWN_SIGMA = np.r_[np.full(3, 1.0), np.full(3, 10.0)]
+"""Standard deviations (rotation [rad] or angular rate [rad/s], then translation [m] or
+velocity [m/s]) stated for a frame whose update failed and that reports its prediction
+(`OnlineEstimator._degrade`): not an estimate of the error, a statement that there is none."""
+
+
 def _gtsam_message(exc: RuntimeError) -> str:
     """GTSAM's message in one line: its first two lines (what and near which key)."""
     lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
@@ -208,6 +231,8 @@ class OnlineEstimator:
         self._warm_estimate: Estimate | None = None
         self.final_note: str | None = None
         """Why `estimate` gave iSAM2's estimate without its final updates (None: it did not)."""
+        self._pending: tuple[gtsam.NonlinearFactorGraph, gtsam.Values] | None = None
+        """The factors and new values of an update that raised: they enter with the next."""
 
     def add(self, measurements: FrameMeasurements) -> None:
         """Add one frame and update iSAM2; records the frame's filtered estimate."""
@@ -221,46 +246,12 @@ class OnlineEstimator:
         if not self._released:
             self._staged.push_back(update.factors)
             self._staged_values.insert(update.values)
-        if update.created and not self._released and self.builder.full_frames < 2:
-            self._warm_up(update.created)
-            timings["warm_up"] = 1e3 * (time.perf_counter() - t1)
-            notes.append("warm-up: batch solve (twist not yet determined)")
-        elif update.created or self._released:
-            first = not self._released
-            if first:
-                factors, values = self._staged, gtsam.Values(self._staged_values)
-                if self._warm is not None:
-                    values.update(self._warm)
-                self._released = True
-            else:
-                factors, values = update.factors, update.values
-            newest = update.created[-1] if update.created else len(self.builder) - 1
-            hold = self._hold(values, newest, first)
-            stored = self.isam.getFactorsUnsafe().size()
-            try:
-                result = self.isam.update(
-                    factors, values, [], self._ordering(factors, newest), hold
-                )
-                relinearized = result.getVariablesRelinearized()
-                held = None if self.config.relinearize_window is None else self._held
-                for _ in range(self.config.extra_updates):
-                    relinearized += self.isam.update(
-                        gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, held
-                    ).getVariablesRelinearized()
-            except RuntimeError as exc:
-                relinearized = self._restart(exc, factors, values, stored, notes)
-            t2 = time.perf_counter()
-            timings["update"] = 1e3 * (t2 - t1)
-            timings["update_cpu"] = 1e3 * (time.process_time() - p1)
-            for i in update.created:
-                X_i = self.isam.calculateEstimatePose3(X(i))
-                pose = from_state(X_i)
-                twist = np.asarray(self.isam.calculateEstimateVector(V(i)), float)
-                pose_cov = state_covariance_to_pose(X_i, self.isam.marginalCovariance(X(i)))
-                twist_cov = self.isam.marginalCovariance(V(i))
-                self.builder.set_hint(i, pose, twist, (pose_cov, twist_cov))
-                self._filtered[i] = _Filtered(pose, twist, pose_cov, twist_cov)
-            timings["estimate"] = 1e3 * (time.perf_counter() - t2)
+        try:
+            relinearized = self._update(update, timings, notes, t1, p1)
+        except Exception:
+            self._degrade(update.created)
+            self._estimate = None
+            raise
         timings["python_factors"] = 1e3 * (self.clock.seconds - c0)
         self._estimate = None
         if self.hook is not None:
@@ -280,6 +271,74 @@ class OnlineEstimator:
                 )
             )
 
+    def _degrade(self, created: list[int]) -> None:
+        """The frames an update that raised has created get their prediction (the builder's
+        initial value: the constant-twist prediction from the last estimate) as their filtered
+        estimate, with `_UNKNOWN_SIGMA` standard deviations: the run goes on and says so (the
+        exception is the frame's failure note); the smoothed estimate (`estimate`) estimates
+        them from everything, if iSAM2 recovers."""
+        for i in created:
+            if i not in self._filtered:
+                pose, twist = self.builder.hint(i)
+                cov = np.diag(np.square(_UNKNOWN_SIGMA))
+                self._filtered[i] = _Filtered(pose, twist, cov, cov.copy())
+
+    def _update(
+        self,
+        update: GraphUpdate,
+        timings: dict[str, float],
+        notes: list[str],
+        t1: float,
+        p1: float,
+    ) -> int | None:
+        """Warm-up or iSAM2 update of one frame's factors; the frames' filtered estimates."""
+        relinearized: int | None = None
+        if update.created and not self._released and self.builder.full_frames < 2:
+            self._warm_up(update.created)
+            timings["warm_up"] = 1e3 * (time.perf_counter() - t1)
+            notes.append("warm-up: batch solve (twist not yet determined)")
+        elif update.created or self._released:
+            first = not self._released
+            if first:
+                factors, values = self._staged, gtsam.Values(self._staged_values)
+                if self._warm is not None:
+                    values.update(self._warm)
+                self._released = True
+            else:
+                factors, values = update.factors, update.values
+            if self._pending is not None:  # an update that raised: its factors enter now
+                factors, values = _merged(self._pending, (factors, values))
+            self._pending = (factors, values)
+            newest = update.created[-1] if update.created else len(self.builder) - 1
+            hold = self._hold(values, newest, first)
+            stored = self.isam.getFactorsUnsafe().size()
+            try:
+                result = self.isam.update(
+                    factors, values, [], self._ordering(factors, newest), hold
+                )
+                relinearized = result.getVariablesRelinearized()
+                held = None if self.config.relinearize_window is None else self._held
+                for _ in range(self.config.extra_updates):
+                    relinearized += self.isam.update(
+                        gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, held
+                    ).getVariablesRelinearized()
+            except RuntimeError as exc:
+                relinearized = self._restart(exc, factors, values, stored, notes)
+            self._pending = None
+            t2 = time.perf_counter()
+            timings["update"] = 1e3 * (t2 - t1)
+            timings["update_cpu"] = 1e3 * (time.process_time() - p1)
+            for i in update.created:
+                X_i = self.isam.calculateEstimatePose3(X(i))
+                pose = from_state(X_i)
+                twist = np.asarray(self.isam.calculateEstimateVector(V(i)), float)
+                pose_cov = state_covariance_to_pose(X_i, self.isam.marginalCovariance(X(i)))
+                twist_cov = self.isam.marginalCovariance(V(i))
+                self.builder.set_hint(i, pose, twist, (pose_cov, twist_cov))
+                self._filtered[i] = _Filtered(pose, twist, pose_cov, twist_cov)
+            timings["estimate"] = 1e3 * (time.perf_counter() - t2)
+        return relinearized
+
     def _restart(
         self,
         exc: RuntimeError,
@@ -297,8 +356,11 @@ class OnlineEstimator:
         zero at iSAM2's linearisation point) are dropped with their factors and start again
         at their next sighting; the rest of the graph, this frame's factors included, is
         solved again (Levenberg-Marquardt from the linearisation point) and iSAM2 restarts
-        there. The frame's notes say so. Raises the original error if nothing was dead, the
-        anchor was, or the restart fails too."""
+        there. With nothing dead the whole graph is solved again the same way: a system that
+        iSAM2's undamped update finds indeterminate at its linearisation point can still
+        be solved by Levenberg-Marquardt's damped steps, and iSAM2 restarts from there. The
+        frame's notes say so. Raises the original error if the anchor was dead or the
+        restart fails too (`add` then reports the frame's prediction, `_degrade`)."""
         why = _gtsam_message(exc)
         old = self.isam.getFactorsUnsafe()
         graph = gtsam.NonlinearFactorGraph()
@@ -330,7 +392,7 @@ class OnlineEstimator:
                     offset += d
         dead = seen - live
         anchor = self.builder.anchor
-        if not dead or (anchor is not None and L(anchor) in dead):
+        if anchor is not None and L(anchor) in dead:
             raise exc
         kept = gtsam.NonlinearFactorGraph()
         for n in range(graph.size()):
@@ -344,9 +406,18 @@ class OnlineEstimator:
             keep = [k for k in self._held_keys if k not in dead]
             self._held_keys, self._held_starts, self._held_thresholds = [], [], np.zeros(0)
             self._add_held(keep)
-        theta = levenberg_marquardt(kept, theta, 100, 1e-10, 1e-12).values
-        self.isam = gtsam.ISAM2(self._params)
-        relinearized = int(self.isam.update(kept, theta).getVariablesRelinearized())
+        try:
+            theta = levenberg_marquardt(kept, theta, 100, 1e-10, 1e-12).values
+            self.isam = gtsam.ISAM2(self._params)
+            relinearized = int(self.isam.update(kept, theta).getVariablesRelinearized())
+        except RuntimeError:
+            raise exc from None
+        if not dead:
+            notes.append(
+                f"iSAM2: {why}; restarted from a batch solve (Levenberg-Marquardt) of the "
+                "whole graph"
+            )
+            return relinearized
         names = ", ".join(sorted(gtsam.DefaultKeyFormatter(k) for k in dead))
         notes.append(
             f"iSAM2: {why}; landmark(s) {names} behind every camera that saw them were "
@@ -468,28 +539,41 @@ class OnlineEstimator:
         """The current smoothed estimate of every frame: iSAM2's solution after up to
         ``final_updates`` Gauss-Newton steps without new factors (which also benefit the
         frames added later), relinearising every variable (also those outside
-        ``relinearize_window``; skipped if that fails: `_final_updates`)."""
+        ``relinearize_window``; skipped if that fails: `_final_updates`). If iSAM2 cannot give
+        its solution (left unusable by an update that raised), the filtered estimate, and
+        `final_note` says so."""
         self._require_start()
         if not self._released:
-            assert self._warm_estimate is not None
+            if self._warm_estimate is None:
+                raise BackendError("no estimate: the warm-up's batch solve failed in every frame")
             return self._warm_estimate
         if self._estimate is None:
             self._final_updates()
-            values = self.isam.calculateBestEstimate()  # full back-substitution
-            n = len(self.builder)
-            self._estimate = Estimate(
-                frame=np.array(self.builder.frames),
-                t_s=np.array(self.builder.t_s),
-                left_cam_from_target=tuple(from_state(values.atPose3(X(i))) for i in range(n)),
-                twist=np.array([values.atVector(V(i)) for i in range(n)]),
-                pose_covariance=np.array(
-                    [
-                        state_covariance_to_pose(
-                            values.atPose3(X(i)), self.isam.marginalCovariance(X(i))
-                        )
-                        for i in range(n)
-                    ]
-                ),
-                twist_covariance=np.array([self.isam.marginalCovariance(V(i)) for i in range(n)]),
-            )
+            try:
+                self._estimate = self._smoothed()
+            except RuntimeError as exc:  # iSAM2 left unusable by an update that raised
+                self.final_note = (
+                    f"no smoothed estimate ({_gtsam_message(exc)}); the filtered one is given"
+                )
+                self._estimate = self.filtered()
         return self._estimate
+
+    def _smoothed(self) -> Estimate:
+        """iSAM2's current solution of every frame, with its marginal covariances."""
+        values = self.isam.calculateBestEstimate()  # full back-substitution
+        n = len(self.builder)
+        return Estimate(
+            frame=np.array(self.builder.frames),
+            t_s=np.array(self.builder.t_s),
+            left_cam_from_target=tuple(from_state(values.atPose3(X(i))) for i in range(n)),
+            twist=np.array([values.atVector(V(i)) for i in range(n)]),
+            pose_covariance=np.array(
+                [
+                    state_covariance_to_pose(
+                        values.atPose3(X(i)), self.isam.marginalCovariance(X(i))
+                    )
+                    for i in range(n)
+                ]
+            ),
+            twist_covariance=np.array([self.isam.marginalCovariance(V(i)) for i in range(n)]),
+        )

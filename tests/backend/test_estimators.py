@@ -610,3 +610,83 @@ def test_landmark_disparity_bias_is_carried_and_estimated(cases) -> None:  # typ
     # measured: mean depth error 2.96 mm without, -0.35 mm with (offline and online)
     for name in ("offline", "online"):
         assert abs(depth_err[(0.3, name)]) < 0.5 * abs(depth_err[(None, name)]), depth_err
+
+
+class _FailingISAM2:
+    """Fault injection: iSAM2 whose ``update`` raises GTSAM's indeterminate-system error for
+    the frames in ``fail_at`` (counted by calls) and is the real iSAM2 otherwise."""
+
+    def __init__(self, real, fail_at: set[int]) -> None:  # type: ignore[no-untyped-def]
+        self._real, self._fail_at, self.calls = real, fail_at, 0
+
+    def update(self, *args):  # type: ignore[no-untyped-def]
+        self.calls += 1
+        if self.calls in self._fail_at:
+            raise RuntimeError(
+                "\\nIndeterminate linear system detected while working near variable\\n7 (x7)."
+            )
+        return self._real.update(*args)
+
+    def __getattr__(self, name: str):  # type: ignore[no-untyped-def]
+        return getattr(self._real, name)
+
+
+def _online_without_final_updates(case):  # type: ignore[no-untyped-def]
+    config = _config("tight")
+    return make_estimator(
+        "online", case.calib, replace(config, online=replace(config.online, final_updates=0))
+    )
+
+
+def test_an_update_that_raises_restarts_isam2_from_a_batch_solve(cases) -> None:  # type: ignore[no-untyped-def]
+    """iSAM2 throwing in one frame's update (nothing dead to drop): the whole graph is solved
+    again by Levenberg-Marquardt and iSAM2 restarts there; the frame is estimated, its note
+    says so, and the smoothed trajectory is as consistent as without the fault (each frame's
+    pose NEES below the 6-dof chi-square 99.9 % bound)."""
+    case = cases("frontend", "tumble", FRAMES, 4)
+    est = _online_without_final_updates(case)
+    notes: list[str] = []
+    est.hook = lambda r: notes.extend(r.notes)
+    for k, m in enumerate(case.measurements):
+        if k == 10:
+            assert est._released
+            est.isam = _FailingISAM2(est.isam, {1})
+        est.add(m)
+    assert any("restarted from a batch solve" in n for n in notes), notes
+    out = est.estimate()
+    e, _ = _errors(out, case)
+    assert np.all(_nees(e, out.pose_covariance) < chi2.ppf(0.999, 6))
+    f, _ = _errors(est.filtered(), case)
+    assert np.all(np.abs(f[:, 3:]) < 0.05), np.abs(f[:, 3:]).max()  # [m]: a frame estimated
+
+
+def test_a_frame_whose_update_cannot_be_rescued_reports_its_prediction(cases, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The restart failing too: ``add`` raises (the pipeline makes it the frame's failure
+    note) but the frame has a filtered row, its constant-twist prediction with the stated
+    "unknown" standard deviations (1 rad, 10 m), and the run goes on to an estimate."""
+    import satpose.backend.online as online
+
+    case = cases("frontend", "tumble", FRAMES, 4)
+    est = _online_without_final_updates(case)
+    real_lm = online.levenberg_marquardt
+    failed = []
+    for k, m in enumerate(case.measurements):
+        if k == 10:
+            est.isam = _FailingISAM2(est.isam, {1})
+
+            def no_lm(*args, **kwargs):  # type: ignore[no-untyped-def]
+                raise RuntimeError("Levenberg-Marquardt failed (injected)")
+
+            monkeypatch.setattr(online, "levenberg_marquardt", no_lm)
+        try:
+            est.add(m)
+        except RuntimeError:
+            failed.append(k)
+        monkeypatch.setattr(online, "levenberg_marquardt", real_lm)
+    assert failed == [10]
+    f = est.filtered()
+    assert len(f.frame) == len(case.measurements)
+    np.testing.assert_allclose(np.sqrt(np.diag(f.pose_covariance[10])), [1, 1, 1, 10, 10, 10])
+    e, _ = _errors(f, case)
+    assert np.all(np.abs(e[11:, 3:]) < 0.05), np.abs(e[11:, 3:]).max()  # the frames after it
+    assert len(est.estimate().frame) == len(case.measurements)
