@@ -531,6 +531,29 @@ def test_orb_tracks_are_capped_per_frame_longest_first(cases) -> None:  # type: 
     assert np.all(pose_nees < chi2.ppf(0.999, 6)), pose_nees.max()
 
 
+def _mean_depth_errors(case, measurements, field: str, sigma: float) -> dict:  # type: ignore[no-untyped-def]
+    """Mean depth error (along each frame's line of sight) [m] of the offline and online
+    smoothers without and with the bias variable ``field`` (standard deviation ``sigma``),
+    keyed ``(None | sigma, name)``; with it, each frame's translation NEES must lie below the
+    3-dof chi-square 99.9 % bound."""
+    out = {}
+    for s in (None, sigma):
+        config = _config("tight")
+        config = replace(config, measurements=replace(config.measurements, **{field: s}))
+        for name in ("offline", "online"):
+            est = _run(name, case, config, measurements).estimate()
+            err = np.array(
+                [p.t - T.t for p, T in zip(est.left_cam_from_target, case.poses, strict=True)]
+            )
+            los = np.array([T.t / np.linalg.norm(T.t) for T in case.poses])
+            out[(s, name)] = float(np.mean(np.einsum("ij,ij->i", err, los)))
+            if s is not None:
+                e, _ = _errors(est, case)
+                C = est.pose_covariance[:, 3:, 3:]
+                assert np.all(_nees(e[:, 3:], C) < chi2.ppf(0.999, 3)), (field, name)
+    return out
+
+
 def test_common_disparity_bias_is_carried_and_estimated(cases) -> None:  # type: ignore[no-untyped-def]
     """Ring centres measured with a disparity error common to every frame (0.3 px: the ring
     1.3-2 cm too far at 4.5-5.5 m) on a turning target with unbiased landmarks: without the
@@ -550,23 +573,7 @@ def test_common_disparity_bias_is_carried_and_estimated(cases) -> None:  # type:
             ring = replace(m.ring, center_m=c + c * float(np.linalg.norm(c)) * beta / (f * b))
             m = replace(m, ring=ring)
         biased.append(m)
-    depth_err = {}
-    for sigma in (None, 0.2):
-        config = _config("tight")
-        config = replace(
-            config, measurements=replace(config.measurements, ring_disparity_bias_px=sigma)
-        )
-        for name in ("offline", "online"):
-            est = _run(name, case, config, biased).estimate()
-            err = np.array(
-                [p.t - T.t for p, T in zip(est.left_cam_from_target, case.poses, strict=True)]
-            )
-            los = np.array([T.t / np.linalg.norm(T.t) for T in case.poses])
-            depth_err[(sigma, name)] = float(np.mean(np.einsum("ij,ij->i", err, los)))
-            if sigma is not None:
-                e, _ = _errors(est, case)
-                C = est.pose_covariance[:, 3:, 3:]
-                assert np.all(_nees(e[:, 3:], C) < chi2.ppf(0.999, 3)), name
+    depth_err = _mean_depth_errors(case, biased, "ring_disparity_bias_px", 0.2)
     for name in ("offline", "online"):
         assert depth_err[(None, name)] > 0.008, depth_err  # the bias passes through
         assert abs(depth_err[(0.2, name)]) < 0.4 * depth_err[(None, name)], depth_err
@@ -590,23 +597,7 @@ def test_landmark_disparity_bias_is_carried_and_estimated(cases) -> None:  # typ
             for lm in m.landmarks
         )
         biased.append(replace(m, landmarks=lms))
-    depth_err = {}
-    for sigma in (None, 0.3):
-        config = _config("tight")
-        config = replace(
-            config, measurements=replace(config.measurements, landmark_disparity_bias_px=sigma)
-        )
-        for name in ("offline", "online"):
-            est = _run(name, case, config, biased).estimate()
-            err = np.array(
-                [p.t - T.t for p, T in zip(est.left_cam_from_target, case.poses, strict=True)]
-            )
-            los = np.array([T.t / np.linalg.norm(T.t) for T in case.poses])
-            depth_err[(sigma, name)] = float(np.mean(np.einsum("ij,ij->i", err, los)))
-            if sigma is not None:
-                e, _ = _errors(est, case)
-                C = est.pose_covariance[:, 3:, 3:]
-                assert np.all(_nees(e[:, 3:], C) < chi2.ppf(0.999, 3)), name
+    depth_err = _mean_depth_errors(case, biased, "landmark_disparity_bias_px", 0.3)
     # measured: mean depth error 2.96 mm without, -0.35 mm with (offline and online)
     for name in ("offline", "online"):
         assert abs(depth_err[(0.3, name)]) < 0.5 * abs(depth_err[(None, name)]), depth_err
