@@ -208,9 +208,16 @@ class FrontArcsFit:
     dof: int
 
 
+def _no_crossings() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_Matcher._crossings` when there are none: points (0, 2), line indices, |cos|."""
+    return np.zeros((0, 2)), np.zeros(0, int), np.zeros(0)
+
+
 class _Matcher:
     """One image's edge points against the other image's edge curve: the epipolar crossings
-    (fixed by the rig) computed once, the residuals for any circle's plane on demand."""
+    (fixed by the rig) computed once, the residuals for any circle's plane on demand.
+    ``depth`` False: the points' distances to the circle's image only (no crossings; ``z``
+    all NaN, nothing judged)."""
 
     def __init__(
         self,
@@ -219,6 +226,7 @@ class _Matcher:
         other_points: np.ndarray,
         cam: Camera,
         config: FrontArcsConfig,
+        depth: bool = True,
     ) -> None:
         self.rig, self.cam, self.config = rig, cam, config
         self.other = Camera.RIGHT if cam is Camera.LEFT else Camera.LEFT
@@ -231,6 +239,9 @@ class _Matcher:
             np.floor((angle + math.pi) / (2 * math.pi) * config.sectors).astype(int)
             % config.sectors
         )
+        if not depth:  # no crossings: nothing is judged
+            self.hit_point, self.hit_index, self.hit_cos = _no_crossings()
+            return
         # the epipolar line of each point: two points of its ray, projected
         near = rig.project_into(self.other, self.C + 2.0 * self.rays)
         far = rig.project_into(self.other, self.C + 200.0 * self.rays)
@@ -251,7 +262,7 @@ class _Matcher:
         the index of the line each belongs to (H,), and |cos| of the crossed segment's
         normal against the line's direction (H,)."""
         if len(curve) < 6:
-            return np.zeros((0, 2)), np.zeros(0, int), np.zeros(0)
+            return _no_crossings()
         centre = curve.mean(axis=0)
         P = curve[np.argsort(np.arctan2(curve[:, 1] - centre[1], curve[:, 0] - centre[0]))]
         seg = np.roll(P, -1, axis=0) - P
@@ -269,13 +280,13 @@ class _Matcher:
     def depths(self, circle: Circle3D) -> ArcDepths:
         """Steps 1-2 of the module against ``circle``'s plane."""
         cfg = self.config
-        nrm = np.asarray(circle.normal, float)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = ((circle.center - self.C) @ nrm) / (self.rays @ nrm)
-        pred = self.rig.project_into(self.other, self.C + s[:, None] * self.rays)
-        z = np.full(len(s), np.nan)
-        judged = np.zeros(len(s), bool)
+        z = np.full(len(self.points), np.nan)
+        judged = np.zeros(len(self.points), bool)
         if self.hit_index.size:
+            nrm = np.asarray(circle.normal, float)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = ((circle.center - self.C) @ nrm) / (self.rays @ nrm)
+            pred = self.rig.project_into(self.other, self.C + s[:, None] * self.rays)
             i = self.hit_index
             dist = np.linalg.norm(self.hit_point - pred[i], axis=1)
             order = np.lexsort((dist, i))
@@ -352,7 +363,9 @@ def fit_front_arcs(
     rp = np.asarray(right_points, float).reshape(-1, 2)
     matchers = (
         _Matcher(rig, lp, rp, Camera.LEFT, cfg),
-        _Matcher(rig, rp, lp, Camera.RIGHT, cfg),
+        # the right image's depth residuals would say what the left's say (the same
+        # crossings, matched the other way round): only its image distances are counted
+        _Matcher(rig, rp, lp, Camera.RIGHT, cfg, depth=False),
     )
     null = _depths(matchers, circle)
     spreads = (

@@ -63,11 +63,9 @@ class StereoRig:
 
     def project(self, points_left: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Project left-frame points (N, 3) into both images: (N, 2), (N, 2)."""
-        X = np.asarray(points_left, float).reshape(-1, 3)
-        pl = X @ self.K_left.T
-        Xr = self.right_from_left.apply(X)
-        pr = Xr @ self.K_right.T
-        return pl[:, :2] / pl[:, 2:], pr[:, :2] / pr[:, 2:]
+        return self.project_into(Camera.LEFT, points_left), self.project_into(
+            Camera.RIGHT, points_left
+        )
 
     def intrinsics(self, cam: Camera) -> np.ndarray:
         """``K`` of camera ``cam``."""
@@ -103,8 +101,11 @@ class StereoRig:
 
     def project_into(self, cam: Camera, points_left: np.ndarray) -> np.ndarray:
         """Project left-frame points (N, 3) into camera ``cam``'s image, (N, 2)."""
-        pl, pr = self.project(points_left)
-        return pl if cam is Camera.LEFT else pr
+        X = np.asarray(points_left, float).reshape(-1, 3)
+        if cam is Camera.RIGHT:
+            X = self.right_from_left.apply(X)
+        p = X @ self.intrinsics(cam).T
+        return p[:, :2] / p[:, 2:]
 
 
 def triangulate(
