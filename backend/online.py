@@ -80,6 +80,9 @@ class Isam2Config:
             would give every ring factor a stale robust weight (GTSAM computes it when it
             linearises).
         relinearize_bias: threshold for the ring edges' common disparity bias [px].
+        relinearize_rig: threshold for the rig as the landmarks see it (``RIG``, with
+            ``landmark_disparity_bias_px``; rotation [rad] and translation [m]: only its yaw
+            moves, by about bias / f, ~1e-4 rad).
         relinearize_window: during the online loop only the states of the newest this many
             frames (besides the new one) and the landmarks and ring radii that entered the
             graph within this many frames are relinearised at the thresholds above; None:
@@ -107,6 +110,7 @@ class Isam2Config:
     relinearize_landmark: float = 1e-3
     relinearize_radius: float = 1e-5
     relinearize_bias: float = 1e-2
+    relinearize_rig: float = 1e-5
     relinearize_window: int | None = 5
     held_relinearize_factor: float = 10.0
     relinearize_skip: int = 1
@@ -122,6 +126,7 @@ class Isam2Config:
             "relinearize_landmark",
             "relinearize_radius",
             "relinearize_bias",
+            "relinearize_rig",
         ):
             if not getattr(self, name) > 0:
                 raise BackendError(f"online.{name} must be positive")
@@ -204,7 +209,7 @@ class OnlineEstimator:
             (LANDMARK_CHAR, np.full(3, config.relinearize_landmark)),
             (RADIUS_CHAR, np.full(1, config.relinearize_radius)),
             (BIAS_CHAR, np.full(1, config.relinearize_bias)),
-            (RIG_CHAR, np.full(6, 1e-5)),  # only its yaw moves (by bias / f: ~1e-4 rad)
+            (RIG_CHAR, np.full(6, config.relinearize_rig)),
         )
         for char, value in thresholds_by_char:
             thresholds.insert((char, value))

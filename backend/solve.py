@@ -54,16 +54,14 @@ class Covariances:
         try:
             self._marginals = gtsam.Marginals(graph, values)
         except RuntimeError:
-            self._dense_covariance(graph, values)
+            self._fall_back()
 
     def _fall_back(self) -> None:
-        """GTSAM's marginals can also fail per variable, after their construction succeeded
-        (a nearly indeterminate variable: seen on tuning seed 14's warm-up at 1024x768); the
-        dense QR route then decides (`_dense_covariance`: a covariance, or a clear error)."""
+        """The dense QR route (a covariance, or a clear error), when GTSAM's marginals fail:
+        at their construction, or per variable after it succeeded (a nearly indeterminate
+        variable: seen on tuning seed 14's warm-up at 1024x768)."""
         self._marginals = None
-        self._dense_covariance(self._graph, self._values)
-
-    def _dense_covariance(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        graph, values = self._graph, self._values
         ordering = gtsam.Ordering()
         start = 0
         for key in values.keys():
