@@ -36,7 +36,7 @@ from _common import machine_summary, write_page  # benchmarks/_common.py (script
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.random_family import random_draw
 from satpose.datasets.render import render_sequence
-from satpose.datasets.scenarios import LightConfig, Scenario, rim_in_view, scaled
+from satpose.datasets.scenarios import LightConfig, RigConfig, Scenario, rim_in_view, scaled
 from satpose.datasets.seed_split import TUNING_SEEDS, VALIDATION_SEEDS
 from satpose.datasets.sequence import load_sequence
 from satpose.frontend.conics import circle_to_conic, conic_to_ellipse
@@ -51,7 +51,7 @@ TARGETS = {
     "offline rot [deg]": 0.2,
     "ellipse centre [px]": 0.3,
 }
-DEFAULT_SIZE = (1024, 768)  # the family's rig (`RigConfig`): f = 1500 px, b = 0.3 m
+DEFAULT_SIZE = (RigConfig().width, RigConfig().height)  # the family's rig: 1024x768
 PAPER = (1.74, 0.94)  # seed 000's per-frame mean errors, 7-3 m [cm, deg]
 
 

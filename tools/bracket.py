@@ -59,6 +59,7 @@ from satpose.frontend.bracket import (
 )
 from satpose.frontend.bracket_lines import (
     PartialHypothesis,
+    Strut,
     StrutDetection,
     StrutDetectorConfig,
     detect_partial,
@@ -182,6 +183,30 @@ def _error(est: Rigid3, true: Rigid3) -> tuple[float, float]:
     )
 
 
+def _as_found_or_refit(
+    gray8: np.ndarray,
+    K: np.ndarray,
+    geo: BracketGeometry,
+    fraction: float,
+    config: StrutDetectorConfig,
+    short_edges: bool,
+) -> tuple[StrutDetection, tuple[np.ndarray, list[Strut]] | StrutDetection]:
+    """`detect_partial` on the strut candidates as found (`partial_candidates` with
+    ``short_edges``) and, only when they give no consistent triple, on each candidate moved
+    to its strut's silhouette where its bar is only the lit part of a side-lit strut (tuning
+    seed 24). Only then: where the bars as found fit, the refit moves some struts and not
+    others and costs accuracy (tuning seeds 1, 26, 31: up to 1.6x their bound), and it can
+    lose a triple (seed 18, frames 9-11). The detection and the candidates it used."""
+    cands = partial_candidates(gray8, config, silhouette=False, short_edges=short_edges)
+    det = detect_partial(gray8, K, geo, fraction, config, prepared=cands)
+    if det.result is None and not det.alternatives and not isinstance(cands, StrutDetection):
+        refit = silhouette_candidates(gray8, cands, config)
+        det_refit = detect_partial(gray8, K, geo, fraction, config, prepared=refit)
+        if det_refit.result is not None or det_refit.alternatives:
+            return det_refit, refit
+    return det, cands
+
+
 def run_bracket(
     sequence_path: Path,
     out: Path,
@@ -266,27 +291,9 @@ def run_bracket(
                             None, None, np.zeros((0, 4)), reason=f"image {prep.problem}"
                         )
                     elif labeller is not None and partial is not None:
-                        cands = partial_candidates(prep.gray8, det_cfg, silhouette=False)
-                        det = detect_partial(
-                            prep.gray8, K, geo, partial[0], det_cfg, prepared=cands
+                        det, cands = _as_found_or_refit(
+                            prep.gray8, K, geo, partial[0], det_cfg, short_edges=False
                         )
-                        if (
-                            det.result is None
-                            and not det.alternatives
-                            and not isinstance(cands, StrutDetection)
-                        ):
-                            # no consistent triple among the bars as found: each bar moved
-                            # to its strut's silhouette where it is only the lit part of a
-                            # side-lit strut (tuning seed 24). Only then: where the bars as
-                            # found fit, the refit moves some struts and not others and
-                            # costs accuracy (tuning seeds 1, 26, 31: up to 1.6x their
-                            # bound), and it can lose a triple (seed 18, frames 9-11)
-                            refit = silhouette_candidates(prep.gray8, cands, det_cfg)
-                            det_refit = detect_partial(
-                                prep.gray8, K, geo, partial[0], det_cfg, prepared=refit
-                            )
-                            if det_refit.result is not None or det_refit.alternatives:
-                                det, cands = det_refit, refit
                         if det.result is None and not det.alternatives:
                             # still none: a thick short stub's two edges differ in direction
                             # by more than a long strut's (its interior edge bent by the
@@ -294,20 +301,11 @@ def run_bracket(
                             # its bar did not form. Pair short edges at their larger angle,
                             # the bars as found and then at their silhouettes. Only here:
                             # more bars elsewhere (the cell grid) only add hypotheses
-                            short = partial_candidates(
-                                prep.gray8, det_cfg, silhouette=False, short_edges=True
+                            det_short, short = _as_found_or_refit(
+                                prep.gray8, K, geo, partial[0], det_cfg, short_edges=True
                             )
-                            if not isinstance(short, StrutDetection):
-                                det_short = detect_partial(
-                                    prep.gray8, K, geo, partial[0], det_cfg, prepared=short
-                                )
-                                if det_short.result is None and not det_short.alternatives:
-                                    short = silhouette_candidates(prep.gray8, short, det_cfg)
-                                    det_short = detect_partial(
-                                        prep.gray8, K, geo, partial[0], det_cfg, prepared=short
-                                    )
-                                if det_short.result is not None or det_short.alternatives:
-                                    det, cands = det_short, short
+                            if det_short.result is not None or det_short.alternatives:
+                                det, cands = det_short, short
                         # also near the best tracks' predictions (a least-squares start
                         # there finds a pose whose P3P pair noise turned complex)
                         near = [
