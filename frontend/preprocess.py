@@ -20,6 +20,13 @@ class ImageError(SatposeError):
     """An image cannot be used at all (wrong shape or type)."""
 
 
+_INTERPOLATION = {
+    "linear": cv2.INTER_LINEAR,
+    "cubic": cv2.INTER_CUBIC,
+    "lanczos4": cv2.INTER_LANCZOS4,
+}
+
+
 @dataclass(frozen=True, kw_only=True)
 class PreprocessConfig:
     """Image checks.
@@ -29,10 +36,20 @@ class PreprocessConfig:
             is "too dark": nothing is detected in it.
         saturated_fraction: an image with more than this fraction of saturated pixels is
             "saturated": nothing is detected in it.
+        interpolation: how the undistorted image is resampled from the raw one,
+            ``"linear"``, ``"cubic"`` or ``"lanczos4"``.
     """
 
     dark_level: float = 0.02
     saturated_fraction: float = 0.5
+    interpolation: str = "linear"
+
+    def __post_init__(self) -> None:
+        if self.interpolation not in _INTERPOLATION:
+            raise ValueError(
+                f"preprocess.interpolation must be one of {sorted(_INTERPOLATION)}, "
+                f"got {self.interpolation!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -83,7 +100,7 @@ class Undistorter:
                 gray,
                 self._maps[0],
                 self._maps[1],
-                cv2.INTER_LINEAR,
+                _INTERPOLATION[self.config.interpolation],
                 borderMode=cv2.BORDER_CONSTANT,
                 borderValue=0.0,
             )
@@ -113,11 +130,12 @@ class Undistorter:
             sx0, sy0, sx1, sy1 = x0, y0, x1, y1
         else:
             xy = self._maps[0][y0:y1, x0:x1]  # integer parts (x, y); [1] holds the fraction
-            # source pixels the bilinear taps need (+1 for the right/bottom tap, +1 margin)
-            sx0 = max(int(xy[..., 0].min()) - 1, 0)
-            sy0 = max(int(xy[..., 1].min()) - 1, 0)
-            sx1 = min(int(xy[..., 0].max()) + 3, w)
-            sy1 = min(int(xy[..., 1].max()) + 3, h)
+            # source pixels the interpolation's taps need (Lanczos-4's reach 3 before and
+            # 4 after; +1 margin each side)
+            sx0 = max(int(xy[..., 0].min()) - 4, 0)
+            sy0 = max(int(xy[..., 1].min()) - 4, 0)
+            sx1 = min(int(xy[..., 0].max()) + 6, w)
+            sy1 = min(int(xy[..., 1].max()) + 6, h)
         # The source window keeps the image's own border, so the constant border of remap
         # applies exactly where it applies to the full image.
         src = self._gray(img[sy0:sy1, sx0:sx1])
@@ -128,7 +146,7 @@ class Undistorter:
                 src,
                 xy - np.array([sx0, sy0], np.int16),
                 self._maps[1][y0:y1, x0:x1],
-                cv2.INTER_LINEAR,
+                _INTERPOLATION[self.config.interpolation],
                 borderMode=cv2.BORDER_CONSTANT,
                 borderValue=0.0,
             )
