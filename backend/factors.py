@@ -135,6 +135,12 @@ class MeasurementConfig:
             (0.2 makes the smoothers' covariances honest there); off by default because the
             landmarks then fix the depth alone, and their own depth bias shows
             (docs/backend.md, "The ring's common disparity bias").
+        ring_disparity_consider_px: standard deviation [px] of a disparity error of the ring
+            edges common to all frames that the offline smoother *considers* without
+            estimating it (tight only; None: not considered): the estimate is the one without
+            it, and its covariances add that error's effect through the estimate's
+            sensitivity to it (Schmidt's consider covariance, docs/backend.md). Ignored when
+            ``ring_disparity_bias_px`` estimates the bias.
         landmark_disparity_bias_px: standard deviation [px] of a disparity error common to
             every landmark (tight, stereo; None, the default: none): the right-image
             observations see the right camera through the variable ``RIG``, the calibrated
@@ -161,6 +167,7 @@ class MeasurementConfig:
     max_orb_per_frame: int | None = 20
     spin_rate: bool = True
     ring_disparity_bias_px: float | None = None
+    ring_disparity_consider_px: float | None = None
     landmark_disparity_bias_px: float | None = None
 
     def __post_init__(self) -> None:
@@ -177,6 +184,9 @@ class MeasurementConfig:
         b = self.ring_disparity_bias_px
         if b is not None and not (math.isfinite(b) and b > 0):
             raise BackendError(f"ring_disparity_bias_px must be > 0 or null, got {b}")
+        b = self.ring_disparity_consider_px
+        if b is not None and not (math.isfinite(b) and b > 0):
+            raise BackendError(f"ring_disparity_consider_px must be > 0 or null, got {b}")
         b = self.landmark_disparity_bias_px
         if b is not None and not (math.isfinite(b) and b > 0):
             raise BackendError(f"landmark_disparity_bias_px must be > 0 or null, got {b}")

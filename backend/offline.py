@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import gtsam
@@ -13,10 +13,10 @@ from satpose.backend.errors import BackendError
 from satpose.backend.estimate import Estimate, Hook, StepReport
 from satpose.backend.factors import FactorClock, MeasurementConfig
 from satpose.backend.graph import GraphBuilder
-from satpose.backend.keys import V, X
+from satpose.backend.keys import DISPARITY_BIAS, V, X
 from satpose.backend.motion import MotionConfig
 from satpose.backend.pose3 import from_state, state_covariance_to_pose, state_to_pose_jacobian
-from satpose.backend.solve import Covariances, levenberg_marquardt
+from satpose.backend.solve import ConsideredCovariances, Covariances, levenberg_marquardt
 from satpose.datasets.sequence import Calibration
 from satpose.frontend.measurements import FrameMeasurements
 
@@ -44,7 +44,13 @@ class OfflineConfig:
 
 class OfflineEstimator:
     """Collects every frame's factors; `estimate` solves the whole graph (warm-started from the
-    previous solution when frames were added since) and computes marginal covariances."""
+    previous solution when frames were added since) and computes marginal covariances.
+
+    With ``MeasurementConfig.ring_disparity_consider_px`` (and the bias not estimated) a
+    second graph is built alongside, the same factors with the ring's common disparity error
+    as a variable; it is only linearised at the solution, for the covariances that consider
+    that error (`ConsideredCovariances`). ``final_note`` says when they could not be had and
+    the plain ones were reported."""
 
     name = "offline"
 
@@ -64,8 +70,19 @@ class OfflineEstimator:
         self.graph = gtsam.NonlinearFactorGraph()
         self.initial = gtsam.Values()
         self._result: gtsam.Values | None = None
-        self._covariances: Covariances | None = None
+        self._covariances: Covariances | ConsideredCovariances | None = None
         self._estimate: Estimate | None = None
+        self.final_note: str | None = None
+        self._consider: tuple[GraphBuilder, gtsam.NonlinearFactorGraph, float] | None = None
+        sigma = measurements.ring_disparity_consider_px
+        if (
+            sigma is not None
+            and measurements.ring_disparity_bias_px is None
+            and measurements.coupling == "tight"
+        ):
+            with_bias = replace(measurements, ring_disparity_bias_px=sigma)
+            builder = GraphBuilder(calibration, motion, with_bias, FactorClock())
+            self._consider = (builder, gtsam.NonlinearFactorGraph(), sigma)
 
     def add(self, measurements: FrameMeasurements) -> None:
         """Add one frame (see `GraphBuilder.add`); no optimisation happens here."""
@@ -73,6 +90,8 @@ class OfflineEstimator:
         update = self.builder.add(measurements, prefer="measurement")
         self.graph.push_back(update.factors)
         self.initial.insert(update.values)
+        if self._consider is not None:
+            self._consider[1].push_back(self._consider[0].add(measurements, "measurement").factors)
         self._estimate = None
         if self.hook is not None:
             self.hook(
@@ -93,6 +112,7 @@ class OfflineEstimator:
             raise BackendError(not_started_message(self.builder))
         t0 = time.perf_counter()
         c0 = self.clock.seconds
+        self.final_note = None
         initial = gtsam.Values(self.initial)
         if self._result is not None:
             initial.update(self._result)  # warm start: previous solution where it exists
@@ -105,7 +125,7 @@ class OfflineEstimator:
         )
         result = solution.values
         t1 = time.perf_counter()
-        covariances = Covariances(self.graph, result)
+        covariances = self._considered(result) or Covariances(self.graph, result)
         self._result, self._covariances = result, covariances
         self._estimate = estimate_from_values(self.builder, result, covariances)
         for i in range(len(self.builder)):
@@ -130,6 +150,29 @@ class OfflineEstimator:
                     error=solution.error,
                 )
             )
+
+    def _considered(self, result: gtsam.Values) -> ConsideredCovariances | None:
+        """The covariances considering the ring's common disparity error, or None (not
+        asked for, no ring in the graph, or not computable: ``final_note`` says why)."""
+        if self._consider is None:
+            return None
+        _, graph, sigma = self._consider
+        values = gtsam.Values(result)
+        values.insert(DISPARITY_BIAS, np.zeros(1))
+        keys = set(graph.keyVector())
+        if DISPARITY_BIAS not in keys:
+            return None  # no ring factor: nothing to consider
+        if not keys <= set(values.keys()):
+            self.final_note = (
+                "covariances without the considered ring disparity error (its graph has "
+                "variables the solution lacks)"
+            )
+            return None
+        try:
+            return ConsideredCovariances(graph, values, DISPARITY_BIAS, sigma)
+        except (BackendError, RuntimeError) as exc:
+            self.final_note = f"covariances without the considered ring disparity error: {exc}"
+            return None
 
     def estimate(self) -> Estimate:
         """The smoothed trajectory of every frame added so far (solves if frames were added)."""

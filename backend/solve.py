@@ -106,6 +106,52 @@ class Covariances:
         return [[self._dense[self._index[a], self._index[b]] for b in keys] for a in keys]
 
 
+class ConsideredCovariances:
+    """Covariances of a solution that ignores one scalar error common to many factors (a
+    *consider* parameter ``b``, zero-mean with standard deviation ``sigma``), with that
+    error's effect added (Schmidt's consider covariance).
+
+    ``graph`` is the solved problem with ``b`` as a variable (``bias_key``) and its prior,
+    ``values`` the solution of the problem without it plus ``b = 0``. With the information
+    matrix of that graph ``[[A, B], [B^T, c]]`` (``x`` the other variables), the solution
+    without ``b`` has covariance ``A^-1`` and moves by ``-A^-1 B`` per unit of ``b``, so its
+    covariance considering ``b`` is ``A^-1 + sigma^2 A^-1 B B^T A^-1``. Both come from the
+    joint covariance ``S`` of the graph with ``b``: ``A^-1 B = -S_xb / S_bb`` and ``A^-1 =
+    S_xx - S_xb S_bx / S_bb``."""
+
+    def __init__(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        bias_key: int,
+        sigma: float,
+    ) -> None:
+        self._base = Covariances(graph, values)
+        self._bias = bias_key
+        self._var = float(sigma) ** 2
+
+    def joint(self, keys: list[int]) -> list[list[np.ndarray]]:
+        """Joint covariance of ``keys`` considering the common error (nested blocks)."""
+        blocks = self._base.joint([*keys, self._bias])
+        dims = [blocks[a][a].shape[0] for a in range(len(keys))]
+        S = np.block(blocks)
+        n = sum(dims)
+        s_xx, s_xb, s_bb = S[:n, :n], S[:n, n], float(S[n, n])
+        if not s_bb > 0:
+            raise BackendError("the considered disparity error has no positive variance")
+        C = s_xx - np.outer(s_xb, s_xb) / s_bb + self._var * np.outer(s_xb, s_xb) / s_bb**2
+        C = 0.5 * (C + C.T)
+        edges = np.cumsum([0, *dims])
+        return [
+            [C[edges[a] : edges[a + 1], edges[b] : edges[b + 1]] for b in range(len(keys))]
+            for a in range(len(keys))
+        ]
+
+    def marginal(self, key: int) -> np.ndarray:
+        """Marginal covariance of one variable considering the common error."""
+        return self.joint([key])[0][0]
+
+
 def _is_vector(values: gtsam.Values, key: int) -> bool:
     try:
         values.atPose3(key)

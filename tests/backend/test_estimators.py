@@ -681,3 +681,38 @@ def test_a_frame_whose_update_cannot_be_rescued_reports_its_prediction(cases, mo
     e, _ = _errors(f, case)
     assert np.all(np.abs(e[11:, 3:]) < 0.05), np.abs(e[11:, 3:]).max()  # the frames after it
     assert len(est.estimate().frame) == len(case.measurements)
+
+
+def test_considered_disparity_error_widens_the_covariance_only(cases) -> None:  # type: ignore[no-untyped-def]
+    """``ring_disparity_consider_px``: the offline estimate is the one without it (to 1e-9 m
+    and rad), every frame's pose covariance grows (the difference is positive semi-definite
+    to rounding), and with ring centres that carry a common disparity error of 0.3 px (the
+    ring 1.3-2 cm too far at 4.5-5.5 m, `test_common_disparity_bias_is_carried_and_estimated`)
+    the considered covariances (sigma 0.3 px) hold every frame's translation error within the
+    3-dof chi-square 99.9 % bound, where the plain ones do not."""
+    case = cases("frontend", "tumble", FRAMES, 4)
+    f = float(case.calib.left.K[0, 0])
+    b = float(np.linalg.norm(case.calib.right_from_left.t))
+    biased = []
+    for m in case.measurements:
+        if m.ring is not None:
+            c = m.ring.center_m
+            ring = replace(m.ring, center_m=c + c * float(np.linalg.norm(c)) * 0.3 / (f * b))
+            m = replace(m, ring=ring)
+        biased.append(m)
+    config = _config("tight")
+    plain = _run("offline", case, config, biased).estimate()
+    considered_config = replace(
+        config, measurements=replace(config.measurements, ring_disparity_consider_px=0.3)
+    )
+    est = _run("offline", case, considered_config, biased)
+    considered = est.estimate()
+    assert est.final_note is None
+    for p, q in zip(plain.left_cam_from_target, considered.left_cam_from_target, strict=True):
+        np.testing.assert_allclose(local_error(p, q), 0.0, atol=1e-9)
+    for Cp, Cc in zip(plain.pose_covariance, considered.pose_covariance, strict=True):
+        assert np.linalg.eigvalsh(Cc - Cp).min() > -1e-9 * np.abs(Cp).max()
+    e, _ = _errors(considered, case)
+    bound = chi2.ppf(0.999, 3)
+    assert np.any(_nees(e[:, 3:], plain.pose_covariance[:, 3:, 3:]) > bound)
+    assert np.all(_nees(e[:, 3:], considered.pose_covariance[:, 3:, 3:]) < bound)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from satpose.backend.errors import BackendError
-from satpose.backend.solve import Covariances
+from satpose.backend.solve import ConsideredCovariances, Covariances
 
 A, B = gtsam.symbol("v", 0), gtsam.symbol("v", 1)
 
@@ -66,3 +66,27 @@ def test_an_undetermined_variable_is_a_clear_error() -> None:
     cov._marginals = _Failing()  # type: ignore[assignment]
     with pytest.raises(BackendError, match="not determined"):
         cov.marginal(B)
+
+
+def test_considered_covariance_is_schmidts() -> None:
+    """``x`` with a prior (sigma 0.5) and four measurements of ``b - x`` (sigma 0.2) that share
+    the error ``b`` (zero-mean, sigma 0.3), solved with ``b = 0``. Oracle, in closed form:
+    information of ``x`` without ``b``: ``a = 1/0.25 + 4/0.04``; the solution moves by
+    ``(4/0.04)/a`` per unit of ``b``; so the considered variance is ``1/a + 0.09 ((4/0.04)/a)^2``
+    (to 1e-12), larger than both the plain ``1/a`` and the estimated-``b`` variance."""
+    g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    v.insert(A, np.zeros(1))
+    v.insert(B, np.zeros(1))
+    g.push_back(gtsam.PriorFactorVector(A, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, 0.5)))
+    for _ in range(4):
+        g.push_back(
+            gtsam.BetweenFactorVector(A, B, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, 0.2))
+        )
+    g.push_back(gtsam.PriorFactorVector(B, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, 0.3)))
+    a = 1 / 0.25 + 4 / 0.04
+    want = 1 / a + 0.09 * (4 / 0.04 / a) ** 2
+    got = ConsideredCovariances(g, v, B, 0.3)
+    assert got.marginal(A)[0, 0] == pytest.approx(want, rel=1e-12)
+    assert got.joint([A])[0][0][0, 0] == pytest.approx(want, rel=1e-12)
+    estimated = Covariances(g, v).marginal(A)[0, 0]
+    assert want > estimated > 1 / a
