@@ -103,17 +103,21 @@ def pipeline_config(args: argparse.Namespace, scenario: Scenario) -> PipelineCon
     ``--largest-ring`` and ``--lit-rim`` (the light from ``scenario``: a lamp's with
     ``lamp``, a lamp's or the sun's with ``all``) if given."""
     c = PipelineConfig()
+    if args.interpolation is not None:
+        pre = replace(c.frontend.preprocess, interpolation=args.interpolation)
+        c = replace(c, frontend=replace(c.frontend, preprocess=pre))
     if args.lit_rim == "all" or (args.lit_rim == "lamp" and scenario.light.kind == "point"):
         c = lit_rim(c, scenario.light)
     if args.largest_ring:
         sr = replace(c.frontend.stereo_ring, behind_sigma=None)
         c = replace(c, frontend=replace(c.frontend, stereo_ring=sr))
-    if args.disparity_bias is None and args.landmark_bias is None:
+    if args.disparity_bias is None and args.landmark_bias is None and args.consider is None:
         return c
     m = replace(
         c.backend.measurements,
         ring_disparity_bias_px=args.disparity_bias,
         landmark_disparity_bias_px=args.landmark_bias,
+        ring_disparity_consider_px=args.consider,
     )
     return replace(c, backend=replace(c.backend, measurements=m))
 
@@ -134,6 +138,10 @@ def one(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     tag = f"{seed}-{s.rig.width}x{s.rig.height}-{s.render.spp}spp-{s.frames}f"
     seq = args.root / tag
     run = args.root / f"{tag}-run{f'-lit-rim-{args.lit_rim}' if args.lit_rim else ''}"
+    if args.interpolation is not None:
+        run = run.with_name(f"{run.name}-{args.interpolation}")
+    if args.consider is not None:
+        run = run.with_name(f"{run.name}-consider")
     try:
         if not (seq / "frames.csv").is_file():
             render_sequence(s, seq, overwrite=True)
@@ -181,6 +189,8 @@ def markdown(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
         + ("" if args.landmark_bias is None else f" --landmark-bias {args.landmark_bias:g}")
         + (" --largest-ring" if args.largest_ring else "")
         + (f" --lit-rim {args.lit_rim}" if args.lit_rim else "")
+        + (f" --interpolation {args.interpolation}" if args.interpolation else "")
+        + ("" if args.consider is None else f" --consider {args.consider:g}")
         + f"` ({machine_summary()}; {time.strftime('%Y-%m-%d')}). Do not edit by hand.",
         "",
         "Per sequence: per-frame (frontend) and offline-smoother mean errors (position of the "
@@ -331,6 +341,12 @@ def main() -> None:
         help="the backend's landmark_disparity_bias_px (default: the backend's default, off)",
     )
     parser.add_argument(
+        "--consider",
+        type=float,
+        metavar="PX",
+        help="the backend's ring_disparity_consider_px (default: the backend's default)",
+    )
+    parser.add_argument(
         "--largest-ring",
         action="store_true",
         help="the old ring choice: the largest consistent pair wins (stereo_ring.behind_sigma: "
@@ -343,6 +359,12 @@ def main() -> None:
         "the scene's light stated as the user would; docs/frontend.md): in the lamp-lit "
         "scenes only, or in all (the sun's direction too)",
     )
+    parser.add_argument(
+        "--interpolation",
+        choices=["linear", "cubic", "lanczos4"],
+        help="the stereo frontend's preprocess.interpolation (the undistortion's resampling; "
+        "default: the config's)",
+    )
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     seeds = list(TUNING_SEEDS if args.set == "tuning" else VALIDATION_SEEDS)[
@@ -350,6 +372,8 @@ def main() -> None:
     ]
     rows = [one(seed, args) for seed in seeds]
     suffix = f"_lit_rim_{args.lit_rim}" if args.lit_rim else ""
+    suffix += f"_{args.interpolation}" if args.interpolation else ""
+    suffix += "_consider" if args.consider is not None else ""
     suffix += f"_from_{seeds[0]}" if args.first else ""
     # the family's own image size (the rig's, 1024x768) has the plain page names; a scaled
     # run says its size (640x480: the faster proxy used before, docs/frontend.md)
