@@ -125,9 +125,18 @@ class OfflineEstimator:
         )
         result = solution.values
         t1 = time.perf_counter()
-        covariances = self._considered(result) or Covariances(self.graph, result)
-        self._result, self._covariances = result, covariances
-        self._estimate = estimate_from_values(self.builder, result, covariances)
+        covariances: Covariances | ConsideredCovariances | None = self._considered(result)
+        estimate = None
+        if covariances is not None:
+            try:
+                estimate = estimate_from_values(self.builder, result, covariances)
+            except (BackendError, RuntimeError) as exc:
+                self.final_note = f"covariances without the considered ring disparity error: {exc}"
+        if estimate is None:
+            covariances = Covariances(self.graph, result)
+            estimate = estimate_from_values(self.builder, result, covariances)
+        assert covariances is not None
+        self._result, self._covariances, self._estimate = result, covariances, estimate
         for i in range(len(self.builder)):
             self.builder.set_hint(
                 i, self._estimate.left_cam_from_target[i], self._estimate.twist[i]
@@ -168,7 +177,7 @@ class OfflineEstimator:
                 "variables the solution lacks)"
             )
             return None
-        try:
+        try:  # the marginals themselves are computed when the estimate asks for them
             return ConsideredCovariances(graph, values, DISPARITY_BIAS, sigma)
         except (BackendError, RuntimeError) as exc:
             self.final_note = f"covariances without the considered ring disparity error: {exc}"

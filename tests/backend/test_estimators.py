@@ -716,3 +716,29 @@ def test_considered_disparity_error_widens_the_covariance_only(cases) -> None:  
     bound = chi2.ppf(0.999, 3)
     assert np.any(_nees(e[:, 3:], plain.pose_covariance[:, 3:, 3:]) > bound)
     assert np.all(_nees(e[:, 3:], considered.pose_covariance[:, 3:, 3:]) < bound)
+
+
+def test_a_failing_considered_covariance_falls_back_to_the_plain_one(cases, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Fault injection: when the considered covariances cannot be had (their marginal raises)
+    the offline estimate is still returned, with the plain covariances, and ``final_note``
+    (which the run prints) says so."""
+    import satpose.backend.offline as offline
+
+    class Failing:
+        def __init__(self, *args) -> None:  # type: ignore[no-untyped-def]
+            pass
+
+        def marginal(self, key: int) -> np.ndarray:
+            raise BackendError("the considered disparity error has no positive variance")
+
+    case = cases("frontend", "tumble", FRAMES, 4)
+    config = _config("tight")
+    plain = _run("offline", case, config).estimate()
+    monkeypatch.setattr(offline, "ConsideredCovariances", Failing)
+    considered_config = replace(
+        config, measurements=replace(config.measurements, ring_disparity_consider_px=0.3)
+    )
+    est = _run("offline", case, considered_config)
+    out = est.estimate()
+    assert est.final_note is not None and "without the considered" in est.final_note
+    np.testing.assert_allclose(out.pose_covariance, plain.pose_covariance, rtol=1e-9, atol=0)
