@@ -76,7 +76,8 @@ class OrbTracker:
             patchSize=21,
             fastThreshold=12,
         )
-        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)  # frame to frame: ratio test on 2-NN
+        self.stereo_matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)  # mutual best
         self.tracks: list[_OrbTrack] = []
         self._next_id = ORB_FIRST_ID
 
@@ -127,7 +128,7 @@ class OrbTracker:
         pl = np.array([k.pt for k in kl])
         pr = np.array([k.pt for k in kr])
         # Stereo: mutual best Hamming matches, then the epipolar/depth gates.
-        matches = self.matcher.match(dl, dr)
+        matches = self.stereo_matcher.match(dl, dr)
         good = [m for m in matches if m.distance <= cfg.max_hamming]
         if not good:
             self.tracks = []

@@ -648,6 +648,7 @@ class PanelTracker:
         self.quad = None
         self.components = np.zeros((0, 2))
         self._prev8 = None
+        self._frames_since_detection = self.config.redetect_every  # detect on the next frame
 
     def update(
         self,

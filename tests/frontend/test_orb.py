@@ -295,12 +295,6 @@ def test_eq10_fusion() -> None:
     np.testing.assert_array_equal(centre, c0)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="bug: stereo ORB matches are not mutual (BFMatcher without crossCheck, although "
-    "OrbTracker.update's comment says 'mutual best Hamming matches'): one right keypoint "
-    "serves up to 3 landmarks (57 of 419 here), counted as independent measurements",
-)
 def test_each_right_feature_serves_one_landmark(stereo) -> None:  # type: ignore[no-untyped-def]
     """A right keypoint is the partner of at most one left keypoint: the same corner found at
     two pyramid levels of the left image (0-5 px apart) must not become two landmarks sharing

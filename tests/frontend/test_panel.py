@@ -333,12 +333,6 @@ def test_tracker_refines_tracked_components() -> None:
     assert d.min(axis=1).max() < 0.1
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="bug: PanelTracker.reset() keeps _frames_since_detection, so after a reset the "
-    "components are not searched until the every-5th-frame cadence comes round (0 found "
-    "where a fresh tracker finds 4)",
-)
 def test_components_are_searched_on_the_frame_after_reset(scene) -> None:  # type: ignore[no-untyped-def]
     """`reset` forgets the tracks so that the next frame acquires afresh (the pipeline resets
     the panel trackers whenever the ring is lost): that frame must search for components as
