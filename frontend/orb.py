@@ -10,6 +10,7 @@ mismatches and, fused with the ring (eq. 10), the paper's close-range pose.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -38,7 +39,11 @@ class OrbConfig:
             match anywhere along it).
         max_hamming: largest descriptor distance of a match.
         ratio: Lowe's ratio test between the best and second-best temporal match.
-        gate_px: a temporal match must land within this distance of its predicted position.
+        gate_px: a temporal match must land within this distance of its predicted position
+            (the pose's prediction, or the image motion that most matches agree on,
+            whichever carries more tracks: `_associate`).
+        consensus_px, consensus_iterations: the image motion's RANSAC (a similarity
+            transform from two matches): inlier distance [px] and hypotheses drawn.
         ransac_px, min_inliers: EPnP + RANSAC reprojection threshold and minimum inliers.
         landmarks: stereo pairing settings.
     """
@@ -50,6 +55,8 @@ class OrbConfig:
     max_hamming: int = 48
     ratio: float = 0.8
     gate_px: float = 20.0
+    consensus_px: float = 3.0
+    consensus_iterations: int = 200
     ransac_px: float = 2.0
     min_inliers: int = 8
     landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
@@ -180,11 +187,19 @@ class OrbTracker:
         self, desc: np.ndarray, pts: np.ndarray, predicted: dict[int, np.ndarray] | None
     ) -> list[int]:
         """Track id per current feature: the previous frame's feature with the closest
-        descriptor (ratio test) near its predicted position, else a new id."""
+        descriptor (ratio test) near its predicted position, else a new id.
+
+        The predicted position is the pose's prediction where there is one, else the
+        feature's last position. Where the target moved more than that says (frames far
+        apart in time, the twist not known yet: a spinning target's features move tens of
+        pixels), the image motion of the descriptor matches themselves predicts instead: a
+        similarity transform that most ratio-test matches agree on (`_image_motion`), taken
+        when it carries more tracks than the prediction."""
         cfg = self.config
         ids = [-1] * len(desc)
         if self.tracks:
             prev_desc = np.array([t.descriptor for t in self.tracks])
+            last = np.array([t.left for t in self.tracks])
             prev_pos = np.array(
                 [
                     predicted[t.track_id] if predicted and t.track_id in predicted else t.left
@@ -192,24 +207,85 @@ class OrbTracker:
                 ]
             )
             knn = self.matcher.knnMatch(desc, prev_desc, k=2)
-            taken: set[int] = set()
+            cands = []
             for q, ms in enumerate(knn):
                 if not ms:
                     continue
                 best = ms[0]
                 if len(ms) > 1 and best.distance > cfg.ratio * ms[1].distance:
                     continue
-                if best.distance > cfg.max_hamming or best.trainIdx in taken:
+                if best.distance > cfg.max_hamming:
                     continue
-                if np.linalg.norm(prev_pos[best.trainIdx] - pts[q]) > cfg.gate_px:
-                    continue
-                taken.add(best.trainIdx)
-                ids[q] = self.tracks[best.trainIdx].track_id
+                cands.append((q, best.trainIdx))
+            pairs = _gated(cands, prev_pos, pts, cfg.gate_px)
+            motion = _image_motion(
+                np.array([last[t] for _, t in cands]).reshape(-1, 2),
+                np.array([pts[q] for q, _ in cands]).reshape(-1, 2),
+                cfg.consensus_px,
+                cfg.consensus_iterations,
+            )
+            if motion is not None:
+                moved = _gated(cands, motion(last), pts, cfg.gate_px)
+                if len(moved) > len(pairs):
+                    pairs = moved
+            for q, t in pairs:
+                ids[q] = self.tracks[t].track_id
         for q in range(len(ids)):
             if ids[q] < 0:
                 ids[q] = self._next_id
                 self._next_id += 1
         return ids
+
+
+def _gated(
+    cands: list[tuple[int, int]], prev_pos: np.ndarray, pts: np.ndarray, gate_px: float
+) -> list[tuple[int, int]]:
+    """The candidate matches (current feature, previous track) whose feature lies within
+    ``gate_px`` of the track's predicted position ``prev_pos``, each track used once (in the
+    order of the current features)."""
+    taken: set[int] = set()
+    out = []
+    for q, t in cands:
+        if t in taken or np.linalg.norm(prev_pos[t] - pts[q]) > gate_px:
+            continue
+        taken.add(t)
+        out.append((q, t))
+    return out
+
+
+def _image_motion(
+    src: np.ndarray, dst: np.ndarray, inlier_px: float, iterations: int
+) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The similarity transform (rotation, scale, translation) of the image that most of the
+    point pairs ``src -> dst`` (N, 2) agree on within ``inlier_px``, refitted on its inliers
+    by least squares; None with fewer than 6 inliers (or pairs). RANSAC from pairs of matches
+    with a fixed seed, so the same matches give the same motion."""
+    n = len(src)
+    if n < 6:
+        return None
+    zs = src[:, 0] + 1j * src[:, 1]
+    zd = dst[:, 0] + 1j * dst[:, 1]
+    rng = np.random.default_rng(0)
+    best: np.ndarray | None = None
+    for _ in range(iterations):
+        i, j = rng.choice(n, size=2, replace=False)
+        if abs(zs[i] - zs[j]) < 1e-6:
+            continue
+        a = (zd[i] - zd[j]) / (zs[i] - zs[j])  # z' = a z + b
+        b = zd[i] - a * zs[i]
+        inliers = np.abs(a * zs + b - zd) < inlier_px
+        if best is None or inliers.sum() > best.sum():
+            best = inliers
+    if best is None or best.sum() < 6:
+        return None
+    A = np.c_[zs[best], np.ones(int(best.sum()))]
+    a, b = np.linalg.lstsq(A, zd[best], rcond=None)[0]
+
+    def apply(p: np.ndarray) -> np.ndarray:
+        z = a * (p[:, 0] + 1j * p[:, 1]) + b
+        return np.c_[z.real, z.imag]
+
+    return apply
 
 
 def epnp_ransac(
