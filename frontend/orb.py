@@ -266,17 +266,17 @@ def _image_motion(
     zs = src[:, 0] + 1j * src[:, 1]
     zd = dst[:, 0] + 1j * dst[:, 1]
     rng = np.random.default_rng(0)
-    best: np.ndarray | None = None
-    for _ in range(iterations):
-        i, j = rng.choice(n, size=2, replace=False)
-        if abs(zs[i] - zs[j]) < 1e-6:
-            continue
-        a = (zd[i] - zd[j]) / (zs[i] - zs[j])  # z' = a z + b
-        b = zd[i] - a * zs[i]
-        inliers = np.abs(a * zs + b - zd) < inlier_px
-        if best is None or inliers.sum() > best.sum():
-            best = inliers
-    if best is None or best.sum() < 6:
+    i, j = rng.integers(0, n, size=(2, iterations))
+    d = zs[i] - zs[j]
+    ok = np.abs(d) > 1e-6  # two distinct points
+    if not ok.any():
+        return None
+    a_all = (zd[i[ok]] - zd[j[ok]]) / d[ok]  # z' = a z + b, one hypothesis per pair
+    b_all = zd[i[ok]] - a_all * zs[i[ok]]
+    residuals = np.abs(a_all[:, None] * zs[None, :] + b_all[:, None] - zd[None, :])
+    k = int(np.argmax((residuals < inlier_px).sum(axis=1)))  # the first of the best
+    best = residuals[k] < inlier_px
+    if best.sum() < 6:
         return None
     A = np.c_[zs[best], np.ones(int(best.sum()))]
     a, b = np.linalg.lstsq(A, zd[best], rcond=None)[0]
