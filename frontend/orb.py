@@ -10,6 +10,7 @@ mismatches and, fused with the ring (eq. 10), the paper's close-range pose.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -60,6 +61,14 @@ class OrbConfig:
     ransac_px: float = 2.0
     min_inliers: int = 8
     landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.consensus_px) and self.consensus_px > 0):
+            raise ValueError(f"orb.consensus_px must be > 0, got {self.consensus_px}")
+        if self.consensus_iterations < 1:
+            raise ValueError(
+                f"orb.consensus_iterations must be >= 1, got {self.consensus_iterations}"
+            )
 
 
 @dataclass

@@ -338,3 +338,12 @@ def test_each_right_feature_serves_one_landmark(stereo) -> None:  # type: ignore
     out = OrbTracker(RIG).update(left, right, None, None, None)
     _, counts = np.unique(np.array([m.right_px for m in out]), axis=0, return_counts=True)
     assert counts[counts > 1].sum() <= 0.01 * len(out)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("consensus_px", 0.0), ("consensus_px", math.nan), ("consensus_iterations", 0)],
+)
+def test_image_motion_settings_are_checked(field: str, value: float) -> None:
+    with pytest.raises(ValueError, match=f"orb.{field}"):
+        OrbConfig(**{field: value})  # type: ignore[arg-type]
