@@ -227,11 +227,16 @@ class OrbTracker:
                     continue
                 cands.append((q, best.trainIdx))
             pairs = _gated(cands, prev_pos, pts, cfg.gate_px)
-            motion = _image_motion(
-                np.array([last[t] for _, t in cands]).reshape(-1, 2),
-                np.array([pts[q] for q, _ in cands]).reshape(-1, 2),
-                cfg.consensus_px,
-                cfg.consensus_iterations,
+            # the image motion can only carry more where the prediction left candidates out
+            motion = (
+                None
+                if len(pairs) == len(cands)
+                else _image_motion(
+                    np.array([last[t] for _, t in cands]).reshape(-1, 2),
+                    np.array([pts[q] for q, _ in cands]).reshape(-1, 2),
+                    cfg.consensus_px,
+                    cfg.consensus_iterations,
+                )
             )
             if motion is not None:
                 moved = _gated(cands, motion(last), pts, cfg.gate_px)
