@@ -166,11 +166,11 @@ class OfflineEstimator:
         if self._consider is None:
             return None
         _, graph, sigma = self._consider
-        values = gtsam.Values(result)
-        values.insert(DISPARITY_BIAS, np.zeros(1))
         keys = set(graph.keyVector())
         if DISPARITY_BIAS not in keys:
             return None  # no ring factor: nothing to consider
+        values = gtsam.Values(result)
+        values.insert(DISPARITY_BIAS, np.zeros(1))
         if not keys <= set(values.keys()):
             self.final_note = (
                 "covariances without the considered ring disparity error (its graph has "
