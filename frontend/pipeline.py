@@ -115,6 +115,13 @@ class StereoRingConfig:
         sweep_range_m: nearest and farthest ring distance the sweep covers [m].
         sweep_step_px: the sweep's step along the epipolar line [px] (below the refinement's
             edge search half-width, so that no disparity falls between two steps).
+        min_radius_m: the smallest circle taken for the ring [m]: 0.1 m is the smallest
+            standard separation ring (an 8-inch motorised light band); docking rings and
+            launch-adapter rings are 0.3-0.9 m. A consistent circle smaller than that is
+            a closed curve of texture (foil cells) or a component's edge on a real surface,
+            which stereo reconstructs as consistently as the ring (tuning seeds 31, 32, 47:
+            0.07-0.10 m circles in foil taken for rings of 0.28-0.65 m, 0.6-0.7 m off).
+            0: no lower bound. A stated `known_ring` is used instead.
     """
 
     max_rms_px: float = 0.6
@@ -131,6 +138,7 @@ class StereoRingConfig:
     sweep: bool = True
     sweep_range_m: tuple[float, float] = (1.0, 30.0)
     sweep_step_px: float = 1.5
+    min_radius_m: float = 0.1
 
     def __post_init__(self) -> None:
         b = self.behind_sigma
@@ -144,6 +152,8 @@ class StereoRingConfig:
             raise ValueError(f"stereo_ring.sweep_range_m must be 0 < near < far, got {lo}, {hi}")
         if not (math.isfinite(self.sweep_step_px) and self.sweep_step_px > 0):
             raise ValueError(f"stereo_ring.sweep_step_px must be > 0, got {self.sweep_step_px}")
+        if not (math.isfinite(self.min_radius_m) and self.min_radius_m >= 0):
+            raise ValueError(f"stereo_ring.min_radius_m must be >= 0, got {self.min_radius_m}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -857,6 +867,7 @@ class StereoFrontend:
         R = self.rig.right_from_left.R
         cand_r = cone_circle_candidates(self.rig.K_right, right.conic)
         out: list[tuple[float, Circle3D]] = []
+        small = False
         for n_l, d_l in cone_circle_candidates(self.rig.K_left, left.conic):
             _, d_r = min(cand_r, key=lambda c: float(np.linalg.norm(R.T @ c[0] - n_l)))
             pl = self.rig.K_left @ d_l
@@ -887,7 +898,15 @@ class StereoFrontend:
                 1 - cfg.max_radius_change
             ):
                 continue  # smaller than the ring seen so far: an inner edge, not the outer one
+            if cfg.known_ring is None and circ.radius < cfg.min_radius_m:
+                small = True
+                continue  # a closed curve of texture or a component, not a ring
             out.append((rms, _inflate(circ, cfg, self.rig)))
+        if not out and small:
+            raise GeometryFailure(
+                f"the two ring ellipses make a circle smaller than min_radius_m "
+                f"({cfg.min_radius_m:g} m): not a ring"
+            )
         if not out:
             raise GeometryFailure(
                 "the two ring ellipses do not make one circle consistent with the ring seen so far"
