@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 from _common import machine_summary, write_page  # benchmarks/_common.py (scripts run from the root)
 
+from satpose.datasets.config import load_config
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.random_family import random_draw
 from satpose.datasets.render import render_sequence
@@ -99,10 +100,10 @@ def lit_rim(c: PipelineConfig, light: LightConfig) -> PipelineConfig:
 
 
 def pipeline_config(args: argparse.Namespace, scenario: Scenario) -> PipelineConfig:
-    """The default `satpose run` configuration, with ``--disparity-bias``,
-    ``--largest-ring`` and ``--lit-rim`` (the light from ``scenario``: a lamp's with
-    ``lamp``, a lamp's or the sun's with ``all``) if given."""
-    c = PipelineConfig()
+    """The default `satpose run` configuration (or ``--config``'s), with
+    ``--disparity-bias``, ``--largest-ring`` and ``--lit-rim`` (the light from ``scenario``:
+    a lamp's with ``lamp``, a lamp's or the sun's with ``all``) if given."""
+    c = load_config(PipelineConfig, args.config) if args.config else PipelineConfig()
     if args.interpolation is not None:
         pre = replace(c.frontend.preprocess, interpolation=args.interpolation)
         c = replace(c, frontend=replace(c.frontend, preprocess=pre))
@@ -142,6 +143,8 @@ def one(seed: int, args: argparse.Namespace) -> dict[str, Any]:
         run = run.with_name(f"{run.name}-{args.interpolation}")
     if args.consider is not None:
         run = run.with_name(f"{run.name}-consider")
+    if args.config is not None:
+        run = run.with_name(f"{run.name}-{args.config.stem}")
     try:
         if not (seq / "frames.csv").is_file():
             render_sequence(s, seq, overwrite=True)
@@ -191,6 +194,7 @@ def markdown(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
         + (f" --lit-rim {args.lit_rim}" if args.lit_rim else "")
         + (f" --interpolation {args.interpolation}" if args.interpolation else "")
         + ("" if args.consider is None else f" --consider {args.consider:g}")
+        + ("" if args.config is None else f" --config {args.config}")
         + f"` ({machine_summary()}; {time.strftime('%Y-%m-%d')}). Do not edit by hand.",
         "",
         "Per sequence: per-frame (frontend) and offline-smoother mean errors (position of the "
@@ -365,6 +369,12 @@ def main() -> None:
         help="the stereo frontend's preprocess.interpolation (the undistortion's resampling; "
         "default: the config's)",
     )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        help="a `satpose run` configuration (YAML) to score instead of the default; the "
+        "options above apply on top; runs and page are named after its file",
+    )
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     seeds = list(TUNING_SEEDS if args.set == "tuning" else VALIDATION_SEEDS)[
@@ -374,6 +384,7 @@ def main() -> None:
     suffix = f"_lit_rim_{args.lit_rim}" if args.lit_rim else ""
     suffix += f"_{args.interpolation}" if args.interpolation else ""
     suffix += "_consider" if args.consider is not None else ""
+    suffix += f"_{args.config.stem}" if args.config is not None else ""
     suffix += f"_from_{seeds[0]}" if args.first else ""
     # the family's own image size (the rig's, 1024x768) has the plain page names; a scaled
     # run says its size (640x480: the faster proxy used before, docs/frontend.md)
