@@ -32,7 +32,6 @@ from _common import machine_summary, tuning_seeds, write_page
 
 from satpose.datasets.bracket_family import bracket_draw, measured_points_b
 
-ARRAY_CLEARANCE_M = 0.003  # the array's plane above the struts' tops (render_frame)
 OUT = Path("docs/results/bracket_stub_parallax.md")
 
 
@@ -57,13 +56,12 @@ def member(seed: int, frames: int, size: tuple[int, int]) -> dict:
         return row  # the whole triangle: no stub ends
     v = sc.vertices_b
     model = measured_points_b(v, sc.visible_fraction)[2:]
-    zp = sc.strut_radius_m + ARRAY_CLEARANCE_M
     K = sc.camera.K
     px, mm, rng = [], [], []
     for b_from_cam in sc.b_from_cam:
         cam_from_b = b_from_cam.inverse()
         for (X, along), M in zip(
-            visible_ends_b(v, sc.visible_fraction, sc.panel_edge_y(), zp, b_from_cam.t),
+            visible_ends_b(v, sc.visible_fraction, sc.panel_edge_y(), sc.array_z(), b_from_cam.t),
             model,
             strict=True,
         ):

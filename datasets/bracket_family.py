@@ -73,6 +73,7 @@ ROLL_CHANGE_RANGE_DEG = (-90.0, 90.0)  # camera roll over the sequence
 AIM_OFFSET_RANGE = (-0.15, 0.15)  # aim point off the visible part's centre, x image size
 CELL_PITCH_RANGE_M = (0.03, 0.12)  # solar cells
 CELL_GAP_RANGE_M = (0.0015, 0.006)  # bright gaps between cells
+ARRAY_CLEARANCE_M = 0.003  # the solar array's plane above the struts' tops
 GRID_ANGLE_RANGE_DEG = (-6.0, 6.0)  # cell grid vs the array's edge
 PANEL_FRAME_PROBABILITY = 0.5  # a bright frame bar along the array's edge
 WALL_PROBABILITY = 0.7  # bus wall (foil) behind the bracket, else dark space
@@ -146,6 +147,11 @@ class BracketScene:
     def cam_from_target(self, k: int) -> Rigid3:
         """``left_cam_from_target`` of frame ``k`` (the truth)."""
         return self.b_from_cam[k].inverse() @ self.target_from_b.inverse()
+
+    def array_z(self) -> float:
+        """``z`` of the solar array's plane [B]: ``ARRAY_CLEARANCE_M`` above the struts'
+        tops (their axes lie in ``z = 0``)."""
+        return self.strut_radius_m + ARRAY_CLEARANCE_M
 
     def panel_edge_y(self) -> float:
         """``y`` of the array's edge [B]: the struts are hidden beyond it."""
@@ -515,7 +521,7 @@ def render_frame(scene: BracketScene, k: int, supersample: int = 2) -> np.ndarra
         radiance[idx] = a_strut * (lam + amb) + spec
 
     # the solar array: the plane z = zp in front of the struts, beyond the edge y > edge_y
-    zp = r + 0.003
+    zp = scene.array_z()
     tp = np.where(d[:, 2] < -1e-9, (zp - o[2]) / np.where(d[:, 2] < -1e-9, d[:, 2], -1), np.inf)
     tp = np.where(tp > 0, tp, np.inf)
     pp = o + np.where(np.isfinite(tp), tp, 0)[:, None] * d
