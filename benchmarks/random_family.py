@@ -123,6 +123,22 @@ def pipeline_config(args: argparse.Namespace, scenario: Scenario) -> PipelineCon
     return replace(c, backend=replace(c.backend, measurements=m))
 
 
+def variant_words(args: argparse.Namespace) -> list[str]:
+    """The words that name a scored variant in its run folders and its page's name (the
+    options that change what is run: ``--lit-rim``, ``--interpolation``, ``--consider``,
+    ``--config``)."""
+    return [
+        w
+        for w in (
+            f"lit_rim_{args.lit_rim}" if args.lit_rim else "",
+            args.interpolation or "",
+            "consider" if args.consider is not None else "",
+            args.config.stem if args.config is not None else "",
+        )
+        if w
+    ]
+
+
 def one(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     draw = random_draw(seed)
     s = scaled(draw.scenario, frames=args.frames, size=args.size, spp=args.spp)
@@ -138,13 +154,7 @@ def one(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     }
     tag = f"{seed}-{s.rig.width}x{s.rig.height}-{s.render.spp}spp-{s.frames}f"
     seq = args.root / tag
-    run = args.root / f"{tag}-run{f'-lit-rim-{args.lit_rim}' if args.lit_rim else ''}"
-    if args.interpolation is not None:
-        run = run.with_name(f"{run.name}-{args.interpolation}")
-    if args.consider is not None:
-        run = run.with_name(f"{run.name}-consider")
-    if args.config is not None:
-        run = run.with_name(f"{run.name}-{args.config.stem}")
+    run = args.root / "-".join([f"{tag}-run", *variant_words(args)])
     try:
         if not (seq / "frames.csv").is_file():
             render_sequence(s, seq, overwrite=True)
@@ -381,10 +391,7 @@ def main() -> None:
         args.first : args.first + args.count
     ]
     rows = [one(seed, args) for seed in seeds]
-    suffix = f"_lit_rim_{args.lit_rim}" if args.lit_rim else ""
-    suffix += f"_{args.interpolation}" if args.interpolation else ""
-    suffix += "_consider" if args.consider is not None else ""
-    suffix += f"_{args.config.stem}" if args.config is not None else ""
+    suffix = "".join(f"_{w}" for w in variant_words(args))
     suffix += f"_from_{seeds[0]}" if args.first else ""
     # the family's own image size (the rig's, 1024x768) has the plain page names; a scaled
     # run says its size (640x480: the faster proxy used before, docs/frontend.md)
