@@ -42,6 +42,9 @@ class OfflineConfig:
             raise BackendError("offline error tolerances must be non-negative")
 
 
+_PLAIN_COVARIANCES = "covariances without the considered ring disparity error"
+
+
 class OfflineEstimator:
     """Collects every frame's factors; `estimate` solves the whole graph (warm-started from the
     previous solution when frames were added since) and computes marginal covariances.
@@ -131,7 +134,7 @@ class OfflineEstimator:
             try:
                 estimate = estimate_from_values(self.builder, result, covariances)
             except (BackendError, RuntimeError) as exc:
-                self.final_note = f"covariances without the considered ring disparity error: {exc}"
+                self.final_note = f"{_PLAIN_COVARIANCES}: {exc}"
         if estimate is None:
             covariances = Covariances(self.graph, result)
             estimate = estimate_from_values(self.builder, result, covariances)
@@ -172,15 +175,12 @@ class OfflineEstimator:
         values = gtsam.Values(result)
         values.insert(DISPARITY_BIAS, np.zeros(1))
         if not keys <= set(values.keys()):
-            self.final_note = (
-                "covariances without the considered ring disparity error (its graph has "
-                "variables the solution lacks)"
-            )
+            self.final_note = f"{_PLAIN_COVARIANCES} (its graph has variables the solution lacks)"
             return None
         try:  # the marginals themselves are computed when the estimate asks for them
             return ConsideredCovariances(graph, values, DISPARITY_BIAS, sigma)
         except (BackendError, RuntimeError) as exc:
-            self.final_note = f"covariances without the considered ring disparity error: {exc}"
+            self.final_note = f"{_PLAIN_COVARIANCES}: {exc}"
             return None
 
     def estimate(self) -> Estimate:
