@@ -43,6 +43,37 @@ def test_pose_nees_is_consistent(method: str) -> None:
     assert lo < np.mean(nees) < hi, np.mean(nees)
 
 
+def test_shared_map_error_makes_the_pose_covariance_honest_with_a_self_built_map() -> None:
+    # As on real data: the target frame and the map come from the first noisy frames, so
+    # every landmark carries the error of the poses it was mapped with, one rigid motion
+    # shared by the whole map. One NEES per seed, at the last frame: independent samples of
+    # chi2(6); their mean over N seeds has sd sqrt(12 / N), bounds at 3 sd. The default
+    # (`independent`, the mapping error per landmark, averaged down) is far above them.
+    s = preset("paper-docking")
+    tr = trajectory(replace(s, frames=6))
+    means = {}
+    for mode in ("shared", "independent"):
+        cfg = SimulationConfig(frame="bootstrap", pose=PoseConfig(map_error=mode))
+        nees = []
+        for seed in range(30):
+            ms = simulate_measurements(
+                tr.left_cam_from_target, tr.t_s, s.rig.calibration(), geometry(s.target), cfg, seed
+            )
+            m, T = ms[-1], tr.left_cam_from_target[-1]
+            assert m.pose is not None and m.pose.method == PoseMethod.RING_LANDMARKS
+            e = pose_tangent_error(m.pose.left_cam_from_target, T)
+            nees.append(e @ np.linalg.solve(m.pose.covariance, e))
+        means[mode] = float(np.mean(nees))
+    half = 3 * np.sqrt(12 / 30)
+    assert 6 - half < means["shared"] < 6 + half, means
+    assert means["independent"] > 6 + half, means
+
+
+def test_map_error_setting_is_validated() -> None:
+    with pytest.raises(ValueError, match=r"pose\.map_error"):
+        PoseConfig(map_error="both")  # type: ignore[arg-type]
+
+
 def test_least_squares_beats_eq9_in_rotation() -> None:
     errs = {}
     for method in ("landmarks", "eq9"):
