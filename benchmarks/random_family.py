@@ -205,6 +205,7 @@ def markdown(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
         + (f" --interpolation {args.interpolation}" if args.interpolation else "")
         + ("" if args.consider is None else f" --consider {args.consider:g}")
         + ("" if args.config is None else f" --config {args.config}")
+        + ("" if args.out is None else f" --out {args.out}")
         + f"` ({machine_summary()}; {time.strftime('%Y-%m-%d')}). Do not edit by hand.",
         "",
         "Per sequence: per-frame (frontend) and offline-smoother mean errors (position of the "
