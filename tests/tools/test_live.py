@@ -349,9 +349,11 @@ def test_live_from_a_bag_gives_the_poses_of_track_on_the_folder(
     b = pd.read_csv(tmp_path / "run" / "trajectory.csv")
     assert list(a.columns) == list(b.columns) and len(b) == len(seq)
     # The same images; the stamps come back from integer ns (within 0.5 ns of t_s) and the
-    # extrinsic through stereoRectify's R, P (1e-15): equal up to one rounding step of
-    # trajectory.csv's 9 decimals (noise-free), as `satpose run` on the imported bag.
-    np.testing.assert_allclose(a.to_numpy(), b.to_numpy(), rtol=0, atol=1.5e-9)
+    # extrinsic through stereoRectify's R, P (1e-15). The solvers' stopping rules (steps of
+    # 1e-10, relinearisation thresholds) can turn that into more than one rounding step of
+    # trajectory.csv's 9 decimals on some CPUs (2.5e-9 seen on an AVX2 machine, 0 on an
+    # AVX-512 one): 1e-6 (1 um, 1 urad) is still far below any mishandled input.
+    np.testing.assert_allclose(a.to_numpy(), b.to_numpy(), rtol=0, atol=1e-6)
 
 
 def test_a_bag_replayed_faster_than_the_step_drops_frames(
