@@ -25,7 +25,7 @@ from typing import Literal
 
 import numpy as np
 
-from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix, skew
+from satpose.datasets.geometry import Rigid3, rotvec_to_matrix, skew
 from satpose.frontend.measurements import (
     LandmarkKind,
     LandmarkMeasurement,
@@ -37,6 +37,7 @@ from satpose.frontend.stereo import (
     GeometryFailure,
     pose_covariance_ring_landmark,
     pose_from_ring_landmark,
+    pose_tangent_error,
     tangent_basis,
 )
 
@@ -471,7 +472,7 @@ def _gauss_newton(
         try:
             if shared:
                 # d ~ d0 + dx_L - dx (first order), d0 the current offset of T_L from T
-                d0 = np.r_[matrix_to_rotvec(T.R.T @ TL.R), T.R.T @ (TL.t - T.t)]
+                d0 = pose_tangent_error(T, TL)
                 H = np.block([[HR + Pi, -Pi], [-Pi, HL + Pi]])
                 g = np.r_[gR - Pi @ d0, gL + Pi @ d0]
                 step = -np.linalg.solve(H, g)
@@ -485,7 +486,8 @@ def _gauss_newton(
         if not (np.all(np.isfinite(dx)) and np.all(np.isfinite(dxl))):
             raise GeometryFailure("the pose fit diverged (non-finite step)")
         T = Rigid3(R=T.R @ rotvec_to_matrix(dx[:3]), t=T.t + T.R @ dx[3:])
-        TL = Rigid3(R=TL.R @ rotvec_to_matrix(dxl[:3]), t=TL.t + TL.R @ dxl[3:])
+        # without the shared error the landmarks see T itself
+        TL = Rigid3(R=TL.R @ rotvec_to_matrix(dxl[:3]), t=TL.t + TL.R @ dxl[3:]) if shared else T
         if max(np.abs(dx).max(), np.abs(dxl).max()) < 1e-10:
             break
     if not len(mapped):
