@@ -65,9 +65,9 @@ class PoseConfig:
             independent between landmarks and averaged down over the mapping sightings.
             ``shared``: one rigid motion of the whole map, a nuisance of the fit with the
             mapping poses' covariance (`_gauss_newton`); the per-frame covariance is then
-            honest with a map the tracker built itself (simulated NEES 5.5-6.5 for 6 dof,
-            against 74-568 with ``independent``), at about the same accuracy on rendered
-            sequences (docs/frontend.md, "Map error").
+            honest with a map the tracker built itself (simulated NEES inside its chi2
+            bound, ``independent`` far above it: tests/frontend/test_pose.py), at about the
+            same accuracy on rendered sequences (docs/frontend.md, "Map error").
     """
 
     method: Literal["landmarks", "eq9"] = "landmarks"
