@@ -13,6 +13,9 @@ import numpy as np
 
 from satpose.datasets.errors import SatposeError
 
+_UNDISTORT_BLOCK = 1 << 15
+"""Points per Newton block in `PinholeCamera.undistort_points`."""
+
 
 class CameraError(SatposeError):
     """Invalid camera parameters."""
@@ -147,11 +150,29 @@ class PinholeCamera:
         if not self.has_distortion:
             return xd
         x = xd.copy()
+        # Newton per block of points: blocks that fit the cache are several times faster
+        # than whole-array passes over millions of points (the renderer's distortion map).
+        for a in range(0, x.shape[0], _UNDISTORT_BLOCK):
+            x[a : a + _UNDISTORT_BLOCK] = self._undistort_block(
+                x[a : a + _UNDISTORT_BLOCK], xd[a : a + _UNDISTORT_BLOCK], iterations
+            )
+        return x
+
+    def _undistort_block(self, x: np.ndarray, xd: np.ndarray, iterations: int) -> np.ndarray:
         for _ in range(iterations):
             r = self.distort_normalized(x) - xd
             if np.max(np.abs(r), initial=0.0) < 1e-14:
                 break
-            x -= np.linalg.solve(self.distortion_jacobian(x), r[..., None])[..., 0]
+            J = self.distortion_jacobian(x)
+            # the 2x2 Newton step in closed form (np.linalg.solve is several times slower)
+            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+            x = x - np.stack(
+                [
+                    (J[:, 1, 1] * r[:, 0] - J[:, 0, 1] * r[:, 1]) / det,
+                    (J[:, 0, 0] * r[:, 1] - J[:, 1, 0] * r[:, 0]) / det,
+                ],
+                axis=1,
+            )
         return x
 
     def scaled(self, width: int, height: int) -> PinholeCamera:

@@ -25,14 +25,14 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
 
 from satpose.datasets.camera import PinholeCamera
 from satpose.datasets.config import to_plain
@@ -83,6 +83,9 @@ class View:
     sample_rc: np.ndarray | None
     cam_from_left: Rigid3
     supersample: int = 1
+    _resamplers: dict[str, Any] = field(default_factory=dict, init=False, compare=False, repr=False)
+    """`distort`'s precomputed bilinear operator and nearest indices, built on first use
+    (the map is the same for every frame)."""
 
 
 def make_view(
@@ -171,33 +174,87 @@ def sensor_dict(
     }
 
 
+def _bilinear_operator(view: View) -> sparse.csr_matrix:
+    """The sparse (H W, H' W') matrix of ``distort``'s bilinear path: output pixel = mean over
+    its s x s sub-pixels of the bilinear interpolation of the canvas at each sub-pixel's
+    position. Canvas pixels outside the canvas count as 0 (``map_coordinates``'s constant
+    mode). Built once per view: applying it is a sparse product instead of one
+    interpolation per frame, channel and sub-pixel (the same numbers to float rounding)."""
+    assert view.sample_rc is not None
+    s = view.supersample
+    H, W = view.camera.height, view.camera.width
+    Hc, Wc = view.canvas.height, view.canvas.width
+    # sub-pixels grouped by output pixel: (H, W, s, s), row-major over output pixels
+    rc = view.sample_rc.reshape(2, H, s, W, s).transpose(0, 1, 3, 2, 4).reshape(2, -1)
+    r0, c0 = np.floor(rc[0]), np.floor(rc[1])
+    fr, fc = rc[0] - r0, rc[1] - c0
+    r0, c0 = r0.astype(np.int64), c0.astype(np.int64)
+    cols = np.empty((r0.size, 4), np.int32)
+    vals = np.empty((r0.size, 4))
+    for k, (dr, dc, w) in enumerate(
+        (
+            (0, 0, (1 - fr) * (1 - fc)),
+            (0, 1, (1 - fr) * fc),
+            (1, 0, fr * (1 - fc)),
+            (1, 1, fr * fc),
+        )
+    ):
+        rr, cc = r0 + dr, c0 + dc
+        inside = (rr >= 0) & (rr < Hc) & (cc >= 0) & (cc < Wc)
+        cols[:, k] = np.where(inside, rr * Wc + cc, 0)
+        vals[:, k] = np.where(inside, w / (s * s), 0.0)
+    per_row = 4 * s * s  # duplicate columns are allowed in CSR: the product sums them
+    indptr = np.arange(0, H * W * per_row + 1, per_row, dtype=np.int64)
+    return sparse.csr_matrix((vals.ravel(), cols.ravel(), indptr), shape=(H * W, Hc * Wc))
+
+
+def _nearest_indices(view: View) -> np.ndarray:
+    """Flat canvas index sampled by every output pixel for ids (the centre sub-pixel's
+    nearest canvas pixel, as ``map_coordinates(order=0)``; -1 outside the canvas)."""
+    assert view.sample_rc is not None
+    s = view.supersample
+    rc = view.sample_rc[:, s // 2 :: s, s // 2 :: s]
+    r = np.floor(rc[0] + 0.5).astype(np.int64)
+    c = np.floor(rc[1] + 0.5).astype(np.int64)
+    Hc, Wc = view.canvas.height, view.canvas.width
+    ok = (r >= 0) & (r < Hc) & (c >= 0) & (c < Wc)
+    return np.where(ok, r * Wc + c, -1)
+
+
 def distort(
     view: View, canvas_image: np.ndarray, nearest: bool = False, cubic: bool = False
 ) -> np.ndarray:
     """Resample a canvas image (H', W'[, C]) into the distorted output image (H, W[, C]):
     nearest neighbour (ids), bilinear, or cubic spline (``cubic``; clipped at 0, since the
-    spline overshoots next to an edge)."""
+    spline overshoots next to an edge). With ``view.supersample = s > 1`` each output pixel is
+    the mean of its s x s sub-pixels (ids: the centre sub-pixel)."""
     if view.sample_rc is None:
         return canvas_image
-    order = 0 if nearest else (3 if cubic else 1)
-    s = view.supersample
     img = canvas_image if canvas_image.ndim == 3 else canvas_image[..., None]
-    out = np.stack(
-        [
-            ndimage.map_coordinates(
-                img[..., c], view.sample_rc, order=order, mode="constant", cval=0.0
-            )
-            for c in range(img.shape[2])
-        ],
-        axis=-1,
-    )
-    if order == 3:
+    H, W = view.camera.height, view.camera.width
+    flat = img.reshape(-1, img.shape[2])
+    if nearest:
+        if "nearest" not in view._resamplers:
+            view._resamplers["nearest"] = _nearest_indices(view)
+        idx = view._resamplers["nearest"]
+        out = np.where((idx >= 0)[..., None], flat[np.maximum(idx, 0)], 0).astype(img.dtype)
+    elif not cubic:
+        if "bilinear" not in view._resamplers:
+            view._resamplers["bilinear"] = _bilinear_operator(view)
+        out = (view._resamplers["bilinear"] @ flat).astype(img.dtype).reshape(H, W, -1)
+    else:
+        s = view.supersample
+        out = np.stack(
+            [
+                ndimage.map_coordinates(
+                    img[..., c], view.sample_rc, order=3, mode="constant", cval=0.0
+                )
+                for c in range(img.shape[2])
+            ],
+            axis=-1,
+        )
         out = np.maximum(out, 0.0)
-    if s > 1:
-        H, W = view.camera.height, view.camera.width
-        if nearest:  # ids: the sub-pixel nearest the pixel's centre
-            out = out[s // 2 :: s, s // 2 :: s]
-        else:  # the pixel's area: the mean of its sub-pixels
+        if s > 1:
             out = out.reshape(H, s, W, s, -1).mean(axis=(1, 3))
     return out if canvas_image.ndim == 3 else out[..., 0]
 

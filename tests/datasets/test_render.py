@@ -245,3 +245,40 @@ def test_lens_distortion_round_trip_keeps_positions(k1: float) -> None:
         ys, xs = np.mgrid[r0 - 6 : r0 + 7, c0 - 6 : c0 + 7]
         got = np.array([(win * xs).sum() / win.sum(), (win * ys).sum() / win.sum()])
         assert np.abs(got - [bx, by]).max() < 0.02, (bx, by, got)
+
+
+@pytest.mark.parametrize("supersample", [1, 3])
+def test_precomputed_resampling_equals_map_coordinates(supersample: int) -> None:
+    """`distort`'s precomputed bilinear operator and nearest indices give what scipy's
+    `map_coordinates` gives on the same map (bilinear at every sub-pixel, mean over the
+    sub-pixels; ids at the centre sub-pixel), to float rounding, ids exactly. A canvas
+    with values outside the map's reach checks the constant (0) border too."""
+    from scipy import ndimage
+
+    from satpose.datasets.render import distort, make_view
+
+    cam = RigConfig(dist_left=(-0.12, 0.03, -1.6e-4, 4e-5, 0.0)).calibration().left
+    cam = cam.scaled(64, 48)
+    view = make_view("left", cam, Rigid3.identity(), supersample)
+    assert view.sample_rc is not None
+    rng = np.random.default_rng(3)
+    img = rng.random((view.canvas.height, view.canvas.width, 3)).astype(np.float32)
+    ref = np.stack(
+        [
+            ndimage.map_coordinates(img[..., c], view.sample_rc, order=1, mode="constant")
+            for c in range(3)
+        ],
+        axis=-1,
+    )
+    s = supersample
+    ref = ref.astype(np.float64).reshape(48, s, 64, s, 3).mean(axis=(1, 3))
+    assert np.abs(distort(view, img) - ref).max() < 1e-6
+    ids = rng.integers(0, 7, size=img.shape[:2]).astype(np.float32)
+    centre = view.sample_rc[:, s // 2 :: s, s // 2 :: s]
+    ref_ids = ndimage.map_coordinates(ids, centre, order=0, mode="constant")
+    assert np.array_equal(distort(view, ids, nearest=True), ref_ids)
+    # a sample map that reaches past the canvas: those neighbours count as 0
+    shifted = replace(view, sample_rc=view.sample_rc - 2.0)
+    ref_edge = ndimage.map_coordinates(img[..., 0], shifted.sample_rc, order=1, mode="constant")
+    ref_edge = ref_edge.astype(np.float64).reshape(48, s, 64, s).mean(axis=(1, 3))
+    assert np.abs(distort(shifted, img[..., 0]) - ref_edge).max() < 1e-6
