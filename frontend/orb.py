@@ -3,7 +3,9 @@
 When the panel corners and components leave the view, ORB features of the target are matched
 between the stereo images (brute-force Hamming, then the epipolar and depth gates of
 `satpose.frontend.landmarks`) and triangulated; matched frame to frame by descriptor near
-their predicted positions, they keep track ids. With a map of their target-frame positions
+their predicted positions, they keep track ids, and a feature that blinked or came back after
+ORB paused takes back the id of the mapped track predicted where it is (search by
+projection, `OrbConfig.reidentify`). With a map of their target-frame positions
 (`TargetFrameTracker`), EPnP + RANSAC on the left image gives a pose ``R', t'`` that rejects
 mismatches and, fused with the ring (eq. 10), the paper's close-range pose.
 """
@@ -46,6 +48,16 @@ class OrbConfig:
         consensus_px, consensus_iterations: the image motion's RANSAC (a similarity
             transform from two matches): inlier distance [px] and hypotheses drawn.
         ransac_px, min_inliers: EPnP + RANSAC reprojection threshold and minimum inliers.
+        reidentify: a feature that no track of the previous frame claims is matched against
+            every earlier track the caller predicts a position for (the mapped ones: search
+            by projection, `OrbTracker._reidentify`), so a feature that blinked, or came back
+            after ORB paused, keeps its id and its map position instead of being mapped again
+            with the current pose's error.
+        reidentify_px: the gate of that search [px] around the predicted position. Tighter
+            than ``gate_px``, which also covers the image motion of a target whose twist is
+            not known yet: re-identification needs a pose prediction, and a look-alike's
+            chance of falling inside the gate grows with its area.
+        library_size: earlier tracks kept for that (the most recently seen).
         landmarks: stereo pairing settings.
     """
 
@@ -60,11 +72,18 @@ class OrbConfig:
     consensus_iterations: int = 200
     ransac_px: float = 2.0
     min_inliers: int = 8
+    reidentify: bool = True
+    reidentify_px: float = 8.0
+    library_size: int = 5000
     landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.consensus_px) and self.consensus_px > 0):
             raise ValueError(f"orb.consensus_px must be > 0, got {self.consensus_px}")
+        if not (math.isfinite(self.reidentify_px) and self.reidentify_px > 0):
+            raise ValueError(f"orb.reidentify_px must be > 0, got {self.reidentify_px}")
+        if self.library_size < 0:
+            raise ValueError(f"orb.library_size must be >= 0, got {self.library_size}")
         if self.consensus_iterations < 1:
             raise ValueError(
                 f"orb.consensus_iterations must be >= 1, got {self.consensus_iterations}"
@@ -95,9 +114,11 @@ class OrbTracker:
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)  # frame to frame: ratio test on 2-NN
         self.stereo_matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)  # mutual best
         self.tracks: list[_OrbTrack] = []
+        self.library: dict[int, _OrbTrack] = {}  # every track seen, last sighting, oldest first
         self._next_id = ORB_FIRST_ID
 
     def reset(self) -> None:
+        """Forget the previous frame's tracks (the library stays: `OrbConfig.reidentify`)."""
         self.tracks = []
 
     def _mask(self, gray8: np.ndarray, ring: Ellipse | None) -> np.ndarray:
@@ -133,7 +154,8 @@ class OrbTracker:
         Args:
             ring_left, ring_right: the ring ellipses (feature masks), if found.
             ring_depth_m: the ring's depth (stereo depth gate).
-            predicted: optional ``{track_id: left px}`` expected positions of existing tracks.
+            predicted: optional ``{track_id: left px}`` expected positions of tracks: of the
+                previous frame's, and of earlier ones to re-identify (`OrbConfig.reidentify`).
         """
         cfg = self.config
         kl, dl = self.orb.detectAndCompute(left8, self._mask(left8, ring_left))
@@ -190,6 +212,11 @@ class OrbTracker:
                 _OrbTrack(track_id=ids[k], descriptor=dl[idx_l[k]], left=pl[idx_l[k]])
             )
         self.tracks = new_tracks
+        for t in new_tracks:  # most recently seen last
+            self.library.pop(t.track_id, None)
+            self.library[t.track_id] = t
+        while len(self.library) > cfg.library_size:
+            del self.library[next(iter(self.library))]
         return out
 
     def _associate(
@@ -244,11 +271,57 @@ class OrbTracker:
                     pairs = moved
             for q, t in pairs:
                 ids[q] = self.tracks[t].track_id
+        if cfg.reidentify and predicted:
+            for q, tid in self._reidentify(desc, pts, predicted, ids).items():
+                ids[q] = tid
         for q in range(len(ids)):
             if ids[q] < 0:
                 ids[q] = self._next_id
                 self._next_id += 1
         return ids
+
+    def _reidentify(
+        self, desc: np.ndarray, pts: np.ndarray, predicted: dict[int, np.ndarray], ids: list[int]
+    ) -> dict[int, int]:
+        """Search by projection: ``{feature index: earlier track id}`` for the features
+        without an id yet, among the library's tracks that are not in this frame already
+        and have a predicted position. A feature takes the track with the closest
+        descriptor among those predicted within ``reidentify_px`` of it, if within
+        ``max_hamming``, clearly closer than the next one there (``ratio``) and mutual (no
+        other feature within the gate is closer to that track)."""
+        cfg = self.config
+        taken = set(ids)
+        cand = [tid for tid in predicted if tid in self.library and tid not in taken]
+        free = [q for q, i in enumerate(ids) if i < 0]
+        if not cand or not free:
+            return {}
+        pos = np.array([predicted[tid] for tid in cand], float).reshape(-1, 2)
+        lib = np.array([self.library[tid].descriptor for tid in cand])
+        k_idx, c_idx = np.nonzero(
+            np.linalg.norm(pts[free][:, None, :] - pos[None, :, :], axis=2) <= cfg.reidentify_px
+        )
+        if k_idx.size == 0:
+            return {}
+        # Hamming distance of each (feature, candidate) pair within the gate: bits of the XOR
+        ham = np.unpackbits(desc[free][k_idx] ^ lib[c_idx], axis=1).sum(axis=1)
+        # each candidate's closest feature within the gate: a match must be mutual
+        cand_best = np.full(len(cand), np.iinfo(np.int64).max)
+        np.minimum.at(cand_best, c_idx, ham.astype(np.int64))
+        best: dict[int, tuple[int, int]] = {}  # candidate -> (distance, feature)
+        for k in np.unique(k_idx):
+            sel = np.flatnonzero(k_idx == k)
+            order = sel[np.argsort(ham[sel], kind="stable")]
+            d0 = int(ham[order[0]])
+            if d0 > cfg.max_hamming:
+                continue
+            if order.size > 1 and d0 > cfg.ratio * int(ham[order[1]]):
+                continue
+            c = int(c_idx[order[0]])
+            if d0 > cand_best[c]:
+                continue
+            if c not in best or d0 < best[c][0]:
+                best[c] = (d0, free[int(k)])
+        return {q: cand[c] for c, (_, q) in best.items()}
 
 
 def _gated(

@@ -1007,12 +1007,12 @@ class StereoFrontend:
     ) -> list[LandmarkMeasurement]:
         pred = None
         if predicted is not None:
+            # the previous frame's tracks, and the earlier ones to re-identify (mapped only)
+            tracks = {t.track_id: None for t in self.orb.tracks}
+            if self.config.orb.reidentify:
+                tracks.update(dict.fromkeys(self.orb.library))
             pred = {
-                tid: px[0]
-                for tid, px in (
-                    self._predicted_pixels(predicted, {t.track_id: None for t in self.orb.tracks})
-                    or {}
-                ).items()
+                tid: px[0] for tid, px in (self._predicted_pixels(predicted, tracks) or {}).items()
             }
         feats = self.orb.update(
             imgs["left"].gray8,

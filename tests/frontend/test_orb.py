@@ -112,15 +112,18 @@ def test_epipolar_distance_is_the_rigs() -> None:
 
 
 def test_track_ids_follow_features_near_their_prediction(stereo) -> None:  # type: ignore[no-untyped-def]
-    """Frame to frame: the same images again keep every id. Both images moved 30 px right
-    (beyond gate_px = 20): with the caller's prediction of the move, and without one (the
-    image motion that the descriptor matches agree on predicts it, `_image_motion`), at least
-    80 % keep their id (measured 87 %: the moved view loses and gains features at the border,
-    and the ratio test drops look-alikes), each the same feature: within 3.5 px of its old
-    pixel + 30 px, far inside the 20 px gate (measured max 2.9 px: keypoints of the coarser
-    pyramid levels lie on a 1.2^k px grid, up to 1.73 px, that a 30 px move does not map onto
-    itself). Another texture keeps almost no id (chance look-alikes within the gate: measured 2
-    of 312, bound 2 %), and ids are never reused. Ids stay unique."""
+    """Frame to frame: the same images again keep every id. Both images moved 30 px right (beyond
+    gate_px = 20): with the caller's prediction of the move, and without one (the image motion
+    that the descriptor matches agree on predicts it, `_image_motion`), at least 80 % keep their
+    id (measured 87 %: the moved view loses and gains features at the border, and the ratio test
+    drops look-alikes), each the same feature: within 4 px of its old pixel + 30 px, far inside
+    the 20 px gate (keypoints of the coarser pyramid levels lie on a 1.2^k px grid, up to 1.73
+    px, that a 30 px move does not map onto itself; frame to frame measured max 2.35 px; with
+    re-identification, which also searches within 8 px of the prediction, 13 more of 340
+    features keep their id and one lands 3.67 px off: a neighbouring keypoint one pyramid level
+    coarser, closer in descriptor than the one at the prediction). Another texture keeps almost
+    no id (chance look-alikes within the gate: measured 2 of 312, bound 2 %), and ids are never
+    reused. Ids stay unique."""
     left, right = stereo
     shift = np.float32([[1, 0, 30], [0, 1, 0]])
     left2, right2 = (cv2.warpAffine(im, shift, (W, H)) for im in (left, right))
@@ -141,7 +144,7 @@ def test_track_ids_follow_features_near_their_prediction(stereo) -> None:  # typ
         kept = [m for m in moved if m.track_id in old]
         assert len(kept) >= 0.8 * len(moved), with_prediction
         for m in kept:
-            assert np.linalg.norm(m.left_px - (old[m.track_id] + [30.0, 0.0])) < 3.5
+            assert np.linalg.norm(m.left_px - (old[m.track_id] + [30.0, 0.0])) < 4.0
         assert len({m.track_id for m in moved}) == len(moved)
     tex = _texture(1)
     other = tracker.update(
@@ -211,6 +214,53 @@ def test_refusals_give_no_landmarks_and_forget_tracks(stereo) -> None:  # type: 
     assert min(m.track_id for m in again) > max(m.track_id for m in first)
     assert tracker.update(left, right, None, None, ring_depth_m=6.0) == []
     assert tracker.tracks == []
+
+
+def test_features_that_came_back_keep_their_ids_by_projection(stereo) -> None:  # type: ignore[no-untyped-def]
+    """Re-identification (`OrbConfig.reidentify`): frame 1 sees the plane, frame 2 is black (the
+    tracker forgets its frame-to-frame tracks), frame 3 sees the plane again moved 30 px. Told
+    where the earlier tracks should be (their old pixel + 30 px, as the pipeline predicts the
+    mapped ones), at least 80 % of frame 3's features take back their frame-1 id (the frame-to-
+    frame test's bound: border features and look-alikes), each within 4 px of where it was
+    predicted (the frame-to-frame test's bound). Without predictions, or with ``reidentify =
+    False``, every id is new. A different texture at the same predictions takes back at most 2 %
+    (chance look-alikes within the gate: the frame-to-frame test's bound)."""
+    left, right = stereo
+    shift = np.float32([[1, 0, 30], [0, 1, 0]])
+    left2, right2 = (cv2.warpAffine(im, shift, (W, H)) for im in (left, right))
+    dark = np.zeros_like(left)
+    tex = _texture(1)
+    other = tuple(
+        cv2.warpAffine(_view(tex, T), shift, (W, H))
+        for T in (CAM_FROM_PLANE, RIG.right_from_left @ CAM_FROM_PLANE)
+    )
+    for reidentify, with_prediction, images in (
+        (True, True, (left2, right2)),
+        (True, False, (left2, right2)),
+        (False, True, (left2, right2)),
+        (True, True, other),
+    ):
+        tracker = OrbTracker(RIG, OrbConfig(reidentify=reidentify))
+        first = tracker.update(left, right, None, None, None)
+        old = {m.track_id: m.left_px for m in first}
+        assert tracker.update(dark, dark, None, None, None) == [] and tracker.tracks == []
+        predicted = (
+            {tid: px + np.array([30.0, 0.0]) for tid, px in old.items()}
+            if with_prediction
+            else None
+        )
+        back = tracker.update(*images, None, None, None, predicted)
+        assert len(back) >= 100
+        kept = [m for m in back if m.track_id in old]
+        assert len({m.track_id for m in back}) == len(back)
+        if images is other:
+            assert len(kept) <= 0.02 * len(back), (len(kept), len(back))
+        elif reidentify and with_prediction:
+            assert len(kept) >= 0.8 * len(back), (len(kept), len(back))
+            for m in kept:
+                assert np.linalg.norm(m.left_px - (old[m.track_id] + [30.0, 0.0])) < 4.0
+        else:
+            assert kept == []
 
 
 CAM_FROM_TARGET = Rigid3.from_rotvec([0.3, -0.5, 0.2], [0.1, -0.2, 3.0])
@@ -342,7 +392,14 @@ def test_each_right_feature_serves_one_landmark(stereo) -> None:  # type: ignore
 
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("consensus_px", 0.0), ("consensus_px", math.nan), ("consensus_iterations", 0)],
+    [
+        ("consensus_px", 0.0),
+        ("consensus_px", math.nan),
+        ("consensus_iterations", 0),
+        ("reidentify_px", 0.0),
+        ("reidentify_px", math.inf),
+        ("library_size", -1),
+    ],
 )
 def test_image_motion_settings_are_checked(field: str, value: float) -> None:
     with pytest.raises(ValueError, match=f"orb.{field}"):
