@@ -367,7 +367,10 @@ class StereoFrontend:
             )
         if self._need_orb(circles, landmarks):
             with timer("orb"):
-                landmarks += self._orb(imgs, ellipses, depth, predicted, failures)
+                # no circle: the ellipses did not agree, and one of them may lie anywhere;
+                # the features are then taken over the whole lit target
+                masks = ellipses if circles else {}
+                landmarks += self._orb(imgs, masks, depth, predicted, failures)
         else:
             self.orb.reset()
         with timer("ring"):
