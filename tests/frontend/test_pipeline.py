@@ -158,6 +158,42 @@ def test_an_exception_inside_a_stage_ends_only_that_frame(
     )
 
 
+def test_orb_without_a_circle_looks_over_the_whole_target(
+    docking_small: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """When the two ring ellipses give no stereo circle, one of them may lie anywhere: ORB
+    must not take its features around the two ellipses (their masks then cover different
+    parts of the target and no stereo pair survives) but over the whole lit target. Here
+    the right ellipse is replaced by a half-size one 300 px away and the circles dropped:
+    ORB still pairs at least half as many features as with the true ellipses (measured 243
+    of 255; with the masks around the two ellipses it paired 0)."""
+    from satpose.frontend.orb import ORB_FIRST_ID, OrbConfig
+    from satpose.frontend.pipeline import FrontendConfig
+
+    seq = load_sequence(docking_small)
+    counts = {}
+    for case in ("true", "moved"):
+        fe = StereoFrontend(seq.calibration, FrontendConfig(orb=OrbConfig(min_other_landmarks=100)))
+        assert fe.process_frame(seq[0]).pose is not None
+        real = fe._ring
+
+        def ring(*args, _real=real, _case=case):  # type: ignore[no-untyped-def]
+            circles, obs, ellipses = _real(*args)
+            if _case == "true":
+                return circles, obs, ellipses
+            r = ellipses["right"]
+            # a small curve elsewhere (a bolt head, a shadow's edge)
+            dx = 300.0 if r.cx < 320 else -300.0
+            moved = type(r)(cx=r.cx + dx, cy=r.cy, a=r.a / 2, b=r.b / 2, theta=r.theta)
+            return [], obs, {**ellipses, "right": moved}
+
+        monkeypatch.setattr(fe, "_ring", ring)
+        m = fe.process_frame(seq[1])
+        counts[case] = sum(lm.track_id >= ORB_FIRST_ID for lm in m.landmarks)
+    assert counts["true"] >= 20, counts
+    assert counts["moved"] >= 0.5 * counts["true"], counts
+
+
 def test_nan_pixels_are_named(docking_small: Path) -> None:
     seq = load_sequence(docking_small)
     fe = StereoFrontend(seq.calibration)
