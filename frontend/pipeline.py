@@ -426,15 +426,13 @@ class StereoFrontend:
     ) -> dict[int, tuple[np.ndarray, np.ndarray]] | None:
         if predicted is None:
             return None
-        out = {}
-        for tid in tracks:
-            mp = self.target.map.get(tid)
-            if mp is None:
-                continue
-            X = predicted.apply(mp.position)
-            pl, pr = self.rig.project(X[None])
-            out[tid] = (pl[0], pr[0])
-        return out
+        # every mapped track in one projection (ORB re-identification asks for thousands)
+        ids = [tid for tid in tracks if tid in self.target.map]
+        if not ids:
+            return {}
+        P = np.array([self.target.map[tid].position for tid in ids])
+        pl, pr = self.rig.project(predicted.apply(P))
+        return {tid: (pl[k], pr[k]) for k, tid in enumerate(ids)}
 
     # -- ring -------------------------------------------------------------------------------
 
