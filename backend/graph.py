@@ -102,8 +102,10 @@ class GraphBuilder:
         self._hint: dict[int, tuple[Rigid3, np.ndarray]] = {}
         self._hint_cov: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         # tight coupling: the frontend's target frame relative to the graph's gauge, from the
-        # starting frame (its per-frame poses are only initial values there)
+        # first frame with a frontend pose from the start on (its per-frame poses are only
+        # initial values and gates; the frontend fixes its frame one ring sighting later)
         self._frontend_from_gauge = Rigid3.identity()
+        self._frontend_frame_known = False
 
     # -- bookkeeping ------------------------------------------------------------------------
 
@@ -176,6 +178,15 @@ class GraphBuilder:
         prev_pose, prev_twist = self._hint[i - 1]
         dt = self.t_s[i] - self.t_s[i - 1]
         predicted = predict(prev_pose, prev_twist, dt)
+        if (
+            not self._frontend_frame_known
+            and m.pose is not None
+            and self.config.coupling == "tight"
+        ):
+            # the frontend fixed its frame after the graph started: relate it through the
+            # prediction (a gate and an initial value need no better)
+            self._frontend_from_gauge = m.pose.left_cam_from_target.inverse() @ predicted
+            self._frontend_frame_known = True
         measured = self._measured_pose(m)
         assert self.start is not None
         use_measurement = measured is not None and (
@@ -233,6 +244,7 @@ class GraphBuilder:
             self.anchor = anchor.track_id
             if m.pose is not None:
                 self._frontend_from_gauge = m.pose.left_cam_from_target.inverse() @ pose
+                self._frontend_frame_known = True
             update.factors.push_back(gauge_factor(anchor.track_id, self.config))
         # Frames added before the start have no usable measurement: same pose, zero twist.
         for j in range(i + 1):

@@ -153,3 +153,29 @@ class Rigid3:
     def rotate(self, vectors: np.ndarray) -> np.ndarray:
         """Rotate direction vectors ``(..., 3)`` from frame b to frame a (no translation)."""
         return np.asarray(vectors, dtype=float) @ self.R.T
+
+
+def absolute_orientation(model: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Arun et al. 1987 / Umeyama 1991 (no scale): ``observed ~ R model + t``, batched.
+
+    Args:
+        model: ``(..., n, 3)`` points in the target frame.
+        observed: ``(..., n, 3)`` the same points in the camera frame.
+
+    Returns:
+        ``R (..., 3, 3)`` (a proper rotation: the reflection case is fixed as Umeyama does) and
+        ``t (..., 3)``.
+    """
+    mq = model.mean(axis=-2)
+    mp = observed.mean(axis=-2)
+    H = np.swapaxes(model - mq[..., None, :], -1, -2) @ (observed - mp[..., None, :])
+    U, _, Vt = np.linalg.svd(H)
+    V = np.swapaxes(Vt, -1, -2)
+    det = np.linalg.det(V @ np.swapaxes(U, -1, -2))
+    D = np.zeros_like(H)
+    D[..., 0, 0] = 1.0
+    D[..., 1, 1] = 1.0
+    D[..., 2, 2] = np.sign(det) + (det == 0)
+    R = V @ D @ np.swapaxes(U, -1, -2)
+    t = mp - np.einsum("...ij,...j->...i", R, mq)
+    return R, t

@@ -37,13 +37,12 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
+from satpose.datasets.geometry import Rigid3, absolute_orientation, rotvec_to_matrix
 from satpose.frontend.bracket import (
     BracketConfig,
     BracketGeometry,
     BracketObservation,
     BracketResult,
-    absolute_orientation,
     incentre,
     p3p_depths,
     project,

@@ -1,11 +1,15 @@
 """The per-frame pose of a non-cooperative target and the target frame it is expressed in.
 
 The target frame is not known in advance. It is fixed at the first frame with a ring and a
-landmark (seed 000 eq. 9): origin = ring centre, z = ring normal, x toward the *anchor*
-landmark (a panel corner if one is visible, else a component, else an ORB feature). Every
-landmark seen with a 3-D point is then *mapped*: its coordinates in the target frame are kept
-(a running mean over its first ``map_observations`` sightings), so that the x axis survives
-when the anchor leaves the view.
+landmark (seed 000 eq. 9) whose ring was seen before (the last frame with a ring saw one
+circle with it: radius within ``confirm_radius_gap``, centre within a radius): origin = ring
+centre, z = ring normal, x toward the *anchor* landmark (a panel corner if one is visible,
+else a component, else an ORB feature). The confirmation costs the first frame's pose;
+without it a first frame that took another circle for the ring (a round component, 0.22 m
+for a 0.60 m ring on tuning seed 5) fixed the frame on that circle, 56 deg from every later
+pose. Every landmark seen with a 3-D point is then *mapped*: its coordinates in the target
+frame are kept (a running mean over its first ``map_observations`` sightings), so that the
+x axis survives when the anchor leaves the view.
 
 Per frame, `TargetFrameTracker.update` returns a `PoseMeasurement`:
 
@@ -25,7 +29,7 @@ from typing import Literal
 
 import numpy as np
 
-from satpose.datasets.geometry import Rigid3, rotvec_to_matrix, skew
+from satpose.datasets.geometry import Rigid3, absolute_orientation, rotvec_to_matrix, skew
 from satpose.frontend.measurements import (
     LandmarkKind,
     LandmarkMeasurement,
@@ -60,6 +64,10 @@ class PoseConfig:
         max_landmark_residual_sigma: landmarks whose residual exceeds this many standard
             deviations are dropped as mismatches and the fit repeated.
         min_landmarks_without_ring: landmarks needed for a pose when the ring is lost.
+        confirm_radius_gap: the target frame is fixed only on a ring that the last frame with
+            a ring measured too: radius within this fraction (the frontend's own radius changes by
+            < 1 % between frames; ``StereoRingConfig.max_radius_change`` is 4 %) and centre
+            within the larger radius. None: on the first ring (seed 000's rule).
         map_error: how the error of the poses a landmark was mapped with enters the pose fit.
             ``independent`` (default): added to each landmark's covariance as if it were
             independent between landmarks and averaged down over the mapping sightings.
@@ -77,8 +85,12 @@ class PoseConfig:
     max_landmark_residual_sigma: float = 5.0
     min_landmarks_without_ring: int = 3
     map_error: Literal["independent", "shared"] = "independent"
+    confirm_radius_gap: float | None = 0.04
 
     def __post_init__(self) -> None:
+        gap = self.confirm_radius_gap
+        if gap is not None and not 0 < gap < 1:
+            raise ValueError(f"pose.confirm_radius_gap must be in (0, 1) or null, got {gap}")
         if self.map_error not in ("independent", "shared"):
             raise ValueError(
                 f"pose.map_error must be 'independent' or 'shared', got {self.map_error!r}"
@@ -112,15 +124,25 @@ class TargetFrameTracker:
     config: PoseConfig = field(default_factory=PoseConfig)
     anchor_id: int | None = None
     map: dict[int, _MapPoint] = field(default_factory=dict)
+    _previous_ring: RingMeasurement | None = field(default=None, repr=False)
+    _waiting: bool = field(default=False, repr=False)
 
     def update(
         self, ring: RingMeasurement | None, landmarks: Sequence[LandmarkMeasurement]
     ) -> tuple[PoseMeasurement | None, str | None]:
         """Pose of this frame and update the map. Returns ``(pose, None)`` or ``(None, reason)``."""
         pts = [lm for lm in landmarks if lm.point_m is not None and lm.covariance is not None]
+        previous = self._previous_ring
+        if ring is not None:
+            self._previous_ring = ring
         try:
             if self.anchor_id is None:
-                pose = self._bootstrap(ring, pts)
+                pose = self._bootstrap(ring, pts, previous)
+                if pose is None and ring is not None and self._waiting:
+                    return None, (
+                        f"pose: the target frame waits for a second sighting of the ring "
+                        f"(radius {ring.radius_m:.3f} m)"
+                    )
             elif self.config.method == "eq9":
                 pose = self._eq9(ring, pts)
             else:
@@ -137,12 +159,23 @@ class TargetFrameTracker:
     # -- bootstrap ---------------------------------------------------------------------------
 
     def _bootstrap(
-        self, ring: RingMeasurement | None, pts: list[LandmarkMeasurement]
+        self,
+        ring: RingMeasurement | None,
+        pts: list[LandmarkMeasurement],
+        previous: RingMeasurement | None,
     ) -> PoseMeasurement | None:
+        """The first pose, which fixes the target frame; None without a ring, without a
+        landmark off its axis (the x axis), or (``_waiting``) before the ring's second
+        sighting (``confirm_radius_gap``)."""
+        self._waiting = False
         if ring is None:
             return None
         usable = [lm for lm in pts if _axis_distance(ring, lm) >= self.config.min_axis_distance_m]
         if not usable:
+            return None
+        gap = self.config.confirm_radius_gap
+        if gap is not None and (previous is None or not same_circle(previous, ring, gap)):
+            self._waiting = True
             return None
         anchor = min(usable, key=lambda lm: (KIND_PRIORITY[lm.kind], lm.track_id))
         self.anchor_id = anchor.track_id
@@ -373,6 +406,15 @@ class TargetFrameTracker:
                 entry.count += 1
 
 
+def same_circle(a: RingMeasurement, b: RingMeasurement, radius_gap: float) -> bool:
+    """Are two rings (of two frames) one circle? Radii within ``radius_gap`` (relative to the
+    smaller) and centres within the larger radius of each other."""
+    r0, r1 = sorted((a.radius_m, b.radius_m))
+    if (r1 - r0) / r0 > radius_gap:
+        return False
+    return bool(np.linalg.norm(a.center_m - b.center_m) <= r1)
+
+
 def _axis_distance(ring: RingMeasurement, lm: LandmarkMeasurement) -> float:
     assert lm.point_m is not None
     d = lm.point_m - ring.center_m
@@ -380,15 +422,12 @@ def _axis_distance(ring: RingMeasurement, lm: LandmarkMeasurement) -> float:
 
 
 def _umeyama(src: np.ndarray, dst: np.ndarray) -> Rigid3:
-    """Least-squares rigid transform with ``dst ~ R src + t`` (Arun/Umeyama, no scale)."""
-    ms, md = src.mean(axis=0), dst.mean(axis=0)
-    H = (src - ms).T @ (dst - md)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    if abs(np.linalg.det(R) - 1) > 1e-6:
-        raise GeometryFailure("degenerate landmark configuration")
-    return Rigid3(R=R, t=md - R @ ms)
+    """Least-squares rigid transform with ``dst ~ R src + t`` (`absolute_orientation`)."""
+    sv = np.linalg.svd(src - src.mean(axis=0), compute_uv=False)
+    if len(src) < 3 or sv[1] <= 1e-9 * max(float(sv[0]), 1e-12):
+        raise GeometryFailure("degenerate landmark configuration (collinear)")
+    R, t = absolute_orientation(src, dst)
+    return Rigid3(R=R, t=t)
 
 
 def _gauss_newton(

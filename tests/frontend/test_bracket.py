@@ -18,13 +18,17 @@ from satpose.datasets.bracket_paper import (
     paper_truth,
 )
 from satpose.datasets.errors import SatposeError
-from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix
+from satpose.datasets.geometry import (
+    Rigid3,
+    absolute_orientation,
+    matrix_to_rotvec,
+    rotvec_to_matrix,
+)
 from satpose.frontend.bracket import (
     BracketConfig,
     BracketGeometry,
     BracketObservation,
     BracketResult,
-    absolute_orientation,
     ant_colony_depths,
     bracket_image_points,
     choose_depths,

@@ -10,15 +10,15 @@ import pytest
 from satpose.datasets.geometry import Rigid3, rotation_angle, rotvec_to_matrix
 from satpose.datasets.scenarios import preset, trajectory
 from satpose.datasets.target import geometry
-from satpose.frontend.measurements import PoseMethod
-from satpose.frontend.pose import PoseConfig
+from satpose.frontend.measurements import PoseMethod, RingMeasurement
+from satpose.frontend.pose import PoseConfig, TargetFrameTracker
 from satpose.frontend.simulate import (
     SimulationConfig,
     make_tracker,
     simulate_frame,
     simulate_measurements,
 )
-from satpose.frontend.stereo import pose_tangent_error
+from satpose.frontend.stereo import pose_tangent_error, tangent_basis
 
 
 def _run(name: str, config: SimulationConfig, seed: int = 0, frames: int | None = None):  # type: ignore[no-untyped-def]
@@ -89,12 +89,48 @@ def test_least_squares_beats_eq9_in_rotation() -> None:
 
 def test_bootstrap_frame_is_x_toward_the_anchor_corner() -> None:
     # Noise-free-ish bootstrap: the estimator's frame equals the truth frame (x to corner 0).
+    # It is fixed at the second frame, the first with a ring seen before.
     cfg = SimulationConfig(sigma_px=1e-4, frame="bootstrap")
     ms, truth = _run("paper-docking", cfg, frames=5)
-    for m, T in zip(ms, truth, strict=True):
+    assert ms[0].pose is None
+    assert any("second sighting of the ring" in f for f in ms[0].failures)
+    for m, T in zip(ms[1:], truth[1:], strict=True):
         assert m.pose is not None
         assert rotation_angle(m.pose.left_cam_from_target.R.T @ T.R) < 1e-4
         assert np.linalg.norm(m.pose.left_cam_from_target.t - T.t) < 1e-4
+
+
+def _another_circle(ring: RingMeasurement) -> RingMeasurement:
+    """A circle that is not the ring: a round component 40 % of its size, 0.4 m beside its
+    centre in its plane, its normal 50 deg away (tuning seed 5's first frame)."""
+    u, _ = tangent_basis(ring.normal)
+    n = rotvec_to_matrix(np.radians(50.0) * u) @ ring.normal
+    return replace(ring, center_m=ring.center_m + 0.4 * u, normal=n, radius_m=0.4 * ring.radius_m)
+
+
+@pytest.mark.parametrize("gap", [0.04, None])
+def test_the_target_frame_waits_for_a_ring_seen_twice(gap: float | None) -> None:
+    """A first frame that took another circle for the ring: with the confirmation (default)
+    the target frame is fixed two frames later on the ring (the truth frame, noise-free-ish as
+    above); without it (``confirm_radius_gap: null``) the first frame fixes it on that
+    circle and every later pose disagrees with that frame by tens of degrees."""
+    ms, truth = _run("paper-docking", SimulationConfig(sigma_px=1e-4, frame="bootstrap"), frames=6)
+    tracker = TargetFrameTracker(config=PoseConfig(confirm_radius_gap=gap))
+    poses = []
+    for k, m in enumerate(ms):
+        assert m.ring is not None
+        ring = _another_circle(m.ring) if k == 0 else m.ring
+        poses.append(tracker.update(ring, m.landmarks)[0])
+    if gap is not None:
+        assert poses[0] is None and poses[1] is None  # frame 1's ring differs from frame 0's
+        for p, T in zip(poses[2:], truth[2:], strict=True):
+            assert p is not None
+            assert rotation_angle(p.left_cam_from_target.R.T @ T.R) < 1e-4
+            assert np.linalg.norm(p.left_cam_from_target.t - T.t) < 1e-4
+    else:
+        assert poses[0] is not None
+        first = rotation_angle(poses[0].left_cam_from_target.R.T @ truth[0].R)
+        assert np.degrees(first) > 30.0
 
 
 def test_pose_survives_losing_the_anchor_and_the_ring() -> None:
