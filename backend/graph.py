@@ -183,10 +183,7 @@ class GraphBuilder:
             and m.pose is not None
             and self.config.coupling == "tight"
         ):
-            # the frontend fixed its frame after the graph started: relate it through the
-            # prediction (a gate and an initial value need no better)
-            self._frontend_from_gauge = m.pose.left_cam_from_target.inverse() @ predicted
-            self._frontend_frame_known = True
+            self._relate_frontend_frame(m, predicted)
         measured = self._measured_pose(m)
         assert self.start is not None
         use_measurement = measured is not None and (
@@ -224,6 +221,21 @@ class GraphBuilder:
         assert measured is not None
         e = local_error(predicted, measured)
         return float(e @ np.linalg.solve(C, e)) < chi2.ppf(self.config.robust_quantile, 6)
+
+    def _relate_frontend_frame(self, m: FrameMeasurements, predicted: Rigid3) -> None:
+        """The frontend fixed its target frame after the graph started (it waits for the
+        ring's second sighting): relate the two at its first pose, by the gauge's own rule
+        in this frame (ring and anchor) if the anchor is seen, else through the prediction
+        (a gate and an initial value need no better). Not through the start frame's pose:
+        its ring may be the circle the frontend refused."""
+        assert m.pose is not None
+        anchor = [lm for lm in m.landmarks if lm.track_id == self.anchor and lm.point_m is not None]
+        if m.ring is not None and anchor and anchor[0].point_m is not None:
+            here = gauge_pose(m.ring, anchor[0].point_m)
+        else:
+            here = predicted
+        self._frontend_from_gauge = m.pose.left_cam_from_target.inverse() @ here
+        self._frontend_frame_known = True
 
     def _can_start(self, m: FrameMeasurements) -> bool:
         if self.config.coupling == "loose":
