@@ -82,6 +82,8 @@ class KalmanEstimator:
         self.frames: list[int] = []
         self.t_s: list[float] = []
         self._states: list[_State] = []  # one per frame once started
+        self._before = 0  # frames before the first pose (retrodicted)
+        self._poses = 0  # poses used so far
         self._state: _State | None = None
 
     # -- model --------------------------------------------------------------------------------
@@ -155,15 +157,21 @@ class KalmanEstimator:
                 notes.append("waiting for a first pose")
             else:
                 first = self._first(m.pose)
-                # Frames before the first pose: retrodicted from it (prediction backwards).
-                t_first = self.t_s[-1]
-                self._states = [self._predict(first, t - t_first) for t in self.t_s[:-1]]
+                # Frames before the first pose: retrodicted from it (prediction backwards),
+                # again from the second pose's state, which knows the twist (`_retrodict`).
+                self._before = len(self.t_s) - 1
+                self._poses = 1
                 self._state = first
+                self._states = []
+                self._retrodict(first)
                 self._states.append(first.copy())
         else:
             s = self._predict(self._state, self.t_s[-1] - self.t_s[-2])
             if m.pose is not None:
                 s = self._update(s, m.pose)
+                self._poses += 1
+                if self._poses == 2 and self._before:
+                    self._retrodict(s)
             else:
                 notes.append("prediction only")
             self._state = s
@@ -178,6 +186,17 @@ class KalmanEstimator:
                     notes=tuple(notes),
                 )
             )
+
+    def _retrodict(self, s: _State) -> None:
+        """The states of the frames before the first pose, predicted backwards from ``s`` (the
+        current frame's state). From the first pose alone the twist is its zero-mean prior,
+        so they are that pose; from the second they move with the measured twist (on
+        `paper-docking`, whose frontend fixes its target frame at the second frame, the first
+        frame's retrodicted pose was 10.1 deg / 6.5 cm off with the prior, 1.6 deg / 1.4 cm
+        with the twist; frame 1, the first pose, 0.8 deg / 1.5 cm)."""
+        t_now = self.t_s[-1]
+        before = [self._predict(s, t - t_now) for t in self.t_s[: self._before]]
+        self._states[: self._before] = before
 
     def estimate(self) -> Estimate:
         """The filtered estimate of every frame (a filter does not smooth)."""

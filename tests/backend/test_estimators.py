@@ -221,6 +221,24 @@ def _drop(ms: list[FrameMeasurements], frames: set[int]) -> list[FrameMeasuremen
     ]
 
 
+def test_kalman_retrodicts_the_frames_before_its_first_pose_with_the_measured_twist(cases) -> None:  # type: ignore[no-untyped-def]
+    """Frames before the filter's first pose (the frontend fixes its target frame at the ring's
+    second sighting) are predicted backwards from the second pose's state, which knows the
+    twist: on `tumble` (several deg per frame) the first two frames, without a pose, stay
+    inside their chi2(6) 99.9 % bound; from the first pose alone (zero-mean twist prior)
+    they would be that pose, a frame or two of tumble away (checked: far outside)."""
+    case = cases("frontend", "tumble", FRAMES, 5)
+    ms = _drop(case.measurements, {0, 1})
+    est = _run("kalman", case, _config("loose"), ms).estimate()
+    e, _ = _errors(est, case)
+    nees = _nees(e, est.pose_covariance)
+    assert np.all(nees[:2] < chi2.ppf(0.999, 6)), nees[:3]
+    # what the first pose alone gives: frame 2's pose for frames 0 and 1
+    stale = np.array([local_error(est.left_cam_from_target[2], case.poses[k]) for k in (0, 1)])
+    assert np.all(_nees(stale, est.pose_covariance[:2]) > 10 * chi2.ppf(0.999, 6))
+    assert np.all(np.linalg.norm(e[:2, :3], axis=1) < 0.2 * np.linalg.norm(stale[:, :3], axis=1))
+
+
 @pytest.mark.parametrize("coupling", ["loose", "tight"])
 def test_frames_without_measurements_are_predicted(coupling: str, cases) -> None:  # type: ignore[no-untyped-def]
     case = cases("frontend", "paper-docking", FRAMES, 5)
