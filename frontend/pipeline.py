@@ -35,7 +35,7 @@ import numpy as np
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix
 from satpose.datasets.sequence import Calibration, Frame
-from satpose.frontend.conics import ConicError, Ellipse, sampson_distance
+from satpose.frontend.conics import ConicError, Ellipse
 from satpose.frontend.edges import smoothed
 from satpose.frontend.ellipses import DetectedEllipse, EllipseDetectorConfig, detect_ellipses
 from satpose.frontend.landmarks import LandmarkConfig, LandmarkTracker
@@ -88,13 +88,7 @@ class StereoRingConfig:
     """Checks on the 3-D ring.
 
     Attributes:
-        max_rms_px: largest RMS misfit of the 3-D circle beyond the edges' own scatter: a
-            circle whose images lie at RMS distance ``rms`` from both images' edge points is
-            consistent if ``rms^2 - own^2 <= max_rms_px^2``, ``own`` the pooled RMS distance
-            of each image's edge points to its own fitted ellipse (the edge noise, which
-            no circle can explain). On clean edges (own ~0.1 px) this is the plain bound;
-            on edges 0.5 px noisy (a rim on crinkled foil at 8 m, tuning seed 4) the right
-            circle measured 0.55-0.70 px and the plain bound refused it in 10 of 30 frames.
+        max_rms_px: largest RMS distance of the edge points to the fitted circle's images.
         max_pairs: when acquiring, at most this many left/right candidate pairs are tried.
         max_radius_change: once the radius is known, a circle smaller by more than this
             fraction is rejected (an inner edge); a larger one replaces the known radius (the
@@ -873,7 +867,6 @@ class StereoFrontend:
         cfg = self.config.stereo_ring
         R = self.rig.right_from_left.R
         cand_r = cone_circle_candidates(self.rig.K_right, right.conic)
-        own = _own_fit_rms(left, right)
         out: list[tuple[float, Circle3D]] = []
         small = False
         for n_l, d_l in cone_circle_candidates(self.rig.K_left, left.conic):
@@ -900,7 +893,7 @@ class StereoFrontend:
             except GeometryFailure:
                 continue
             rms = circle_rms(self.rig, circ, left.edge_points_px, right.edge_points_px)
-            if rms**2 - own**2 > cfg.max_rms_px**2:
+            if rms > cfg.max_rms_px:
                 continue
             if self._radii and circ.radius < float(np.median(self._radii)) * (
                 1 - cfg.max_radius_change
@@ -1042,16 +1035,6 @@ class StereoFrontend:
                 outliers = {f.track_id for f, ok in zip(mapped, inliers, strict=True) if not ok}
                 feats = [f for f in feats if f.track_id not in outliers]
         return feats
-
-
-def _own_fit_rms(*observations: EllipseObservation) -> float:
-    """Pooled RMS distance (Sampson) of each observation's edge points to its own ellipse."""
-    sq, n = 0.0, 0
-    for o in observations:
-        d = sampson_distance(o.edge_points_px, o.conic)
-        sq += float(np.sum(d**2))
-        n += len(d)
-    return math.sqrt(sq / n) if n else 0.0
 
 
 def _mixed_detection(
