@@ -103,9 +103,9 @@ class GraphBuilder:
         self._hint_cov: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         # tight coupling: the frontend's target frame relative to the graph's gauge, from the
         # first frame with a frontend pose from the start on (its per-frame poses are only
-        # initial values and gates; the frontend fixes its frame one ring sighting later)
-        self._frontend_from_gauge = Rigid3.identity()
-        self._frontend_frame_known = False
+        # initial values and gates; the frontend fixes its frame one ring sighting later);
+        # None until then (and in loose coupling, where the two frames are one)
+        self._frontend_from_gauge: Rigid3 | None = None
 
     # -- bookkeeping ------------------------------------------------------------------------
 
@@ -179,7 +179,7 @@ class GraphBuilder:
         dt = self.t_s[i] - self.t_s[i - 1]
         predicted = predict(prev_pose, prev_twist, dt)
         if (
-            not self._frontend_frame_known
+            self._frontend_from_gauge is None
             and m.pose is not None
             and self.config.coupling == "tight"
         ):
@@ -205,6 +205,8 @@ class GraphBuilder:
         the frontend's few-degree bootstrap error)."""
         if m.pose is None:
             return None
+        if self._frontend_from_gauge is None:  # loose coupling: the frontend's frame
+            return m.pose.left_cam_from_target
         return m.pose.left_cam_from_target @ self._frontend_from_gauge
 
     def _agrees(self, m: FrameMeasurements, predicted: Rigid3, prev: int, dt: float) -> bool:
@@ -229,13 +231,9 @@ class GraphBuilder:
         (a gate and an initial value need no better). Not through the start frame's pose:
         its ring may be the circle the frontend refused."""
         assert m.pose is not None
-        anchor = [lm for lm in m.landmarks if lm.track_id == self.anchor and lm.point_m is not None]
-        if m.ring is not None and anchor and anchor[0].point_m is not None:
-            here = gauge_pose(m.ring, anchor[0].point_m)
-        else:
-            here = predicted
+        point = next((lm.point_m for lm in m.landmarks if lm.track_id == self.anchor), None)
+        here = gauge_pose(m.ring, point) if m.ring is not None and point is not None else predicted
         self._frontend_from_gauge = m.pose.left_cam_from_target.inverse() @ here
-        self._frontend_frame_known = True
 
     def _can_start(self, m: FrameMeasurements) -> bool:
         if self.config.coupling == "loose":
@@ -256,7 +254,6 @@ class GraphBuilder:
             self.anchor = anchor.track_id
             if m.pose is not None:
                 self._frontend_from_gauge = m.pose.left_cam_from_target.inverse() @ pose
-                self._frontend_frame_known = True
             update.factors.push_back(gauge_factor(anchor.track_id, self.config))
         # Frames added before the start have no usable measurement: same pose, zero twist.
         for j in range(i + 1):

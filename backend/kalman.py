@@ -158,20 +158,18 @@ class KalmanEstimator:
             else:
                 first = self._first(m.pose)
                 # Frames before the first pose: retrodicted from it (prediction backwards),
-                # again from the second pose's state, which knows the twist (`_retrodict`).
+                # again from the second pose's state, which knows the twist (`_retrodicted`).
                 self._before = len(self.t_s) - 1
                 self._poses = 1
                 self._state = first
-                self._states = []
-                self._retrodict(first)
-                self._states.append(first.copy())
+                self._states = [*self._retrodicted(first), first.copy()]
         else:
             s = self._predict(self._state, self.t_s[-1] - self.t_s[-2])
             if m.pose is not None:
                 s = self._update(s, m.pose)
                 self._poses += 1
-                if self._poses == 2 and self._before:
-                    self._retrodict(s)
+                if self._poses == 2:
+                    self._states[: self._before] = self._retrodicted(s)
             else:
                 notes.append("prediction only")
             self._state = s
@@ -187,7 +185,7 @@ class KalmanEstimator:
                 )
             )
 
-    def _retrodict(self, s: _State) -> None:
+    def _retrodicted(self, s: _State) -> list[_State]:
         """The states of the frames before the first pose, predicted backwards from ``s`` (the
         current frame's state). From the first pose alone the twist is its zero-mean prior,
         so they are that pose; from the second they move with the measured twist (on
@@ -195,8 +193,7 @@ class KalmanEstimator:
         frame's retrodicted pose was 10.1 deg / 6.5 cm off with the prior, 1.6 deg / 1.4 cm
         with the twist; frame 1, the first pose, 0.8 deg / 1.5 cm)."""
         t_now = self.t_s[-1]
-        before = [self._predict(s, t - t_now) for t in self.t_s[: self._before]]
-        self._states[: self._before] = before
+        return [self._predict(s, t - t_now) for t in self.t_s[: self._before]]
 
     def estimate(self) -> Estimate:
         """The filtered estimate of every frame (a filter does not smooth)."""

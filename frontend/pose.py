@@ -125,7 +125,6 @@ class TargetFrameTracker:
     anchor_id: int | None = None
     map: dict[int, _MapPoint] = field(default_factory=dict)
     _previous_ring: RingMeasurement | None = field(default=None, repr=False)
-    _waiting: bool = field(default=False, repr=False)
 
     def update(
         self, ring: RingMeasurement | None, landmarks: Sequence[LandmarkMeasurement]
@@ -137,12 +136,9 @@ class TargetFrameTracker:
             self._previous_ring = ring
         try:
             if self.anchor_id is None:
-                pose = self._bootstrap(ring, pts, previous)
-                if pose is None and ring is not None and self._waiting:
-                    return None, (
-                        f"pose: the target frame waits for a second sighting of the ring "
-                        f"(radius {ring.radius_m:.3f} m)"
-                    )
+                pose, waiting = self._bootstrap(ring, pts, previous)
+                if waiting is not None:
+                    return None, waiting
             elif self.config.method == "eq9":
                 pose = self._eq9(ring, pts)
             else:
@@ -163,23 +159,24 @@ class TargetFrameTracker:
         ring: RingMeasurement | None,
         pts: list[LandmarkMeasurement],
         previous: RingMeasurement | None,
-    ) -> PoseMeasurement | None:
-        """The first pose, which fixes the target frame; None without a ring, without a
-        landmark off its axis (the x axis), or (``_waiting``) before the ring's second
-        sighting (``confirm_radius_gap``)."""
-        self._waiting = False
+    ) -> tuple[PoseMeasurement | None, str | None]:
+        """The first pose, which fixes the target frame, and None; ``(None, None)`` without a
+        ring or without a landmark off its axis (the x axis); ``(None, reason)`` before the
+        ring's second sighting (``confirm_radius_gap``)."""
         if ring is None:
-            return None
+            return None, None
         usable = [lm for lm in pts if _axis_distance(ring, lm) >= self.config.min_axis_distance_m]
         if not usable:
-            return None
+            return None, None
         gap = self.config.confirm_radius_gap
         if gap is not None and (previous is None or not same_circle(previous, ring, gap)):
-            self._waiting = True
-            return None
+            return None, (
+                f"pose: the target frame waits for a second sighting of the ring "
+                f"(radius {ring.radius_m:.3f} m)"
+            )
         anchor = min(usable, key=lambda lm: (KIND_PRIORITY[lm.kind], lm.track_id))
         self.anchor_id = anchor.track_id
-        return self._pose_eq9(ring, anchor, azimuth=0.0)
+        return self._pose_eq9(ring, anchor, azimuth=0.0), None
 
     # -- seed 000 eq. 9 ----------------------------------------------------------------------
 
