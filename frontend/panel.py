@@ -42,8 +42,10 @@ class CornerConfig:
         min_corner_angle_deg: the pairs cross at more than this angle.
         min_side_support: fraction of a side's samples that must sit on an edge with the panel
             brighter inside (the candidate quadrilateral's sides, between its corners).
-        foreground_level, min_fill: at least ``min_fill`` of the quadrilateral's inside must
-            be brighter than ``foreground_level`` (fraction of full scale, after smoothing).
+        foreground_level, min_fill, min_lit: at least ``min_fill`` of the quadrilateral's
+            inside must be panel (brighter than ``foreground_level``, a fraction of full scale
+            after smoothing, or a dark hole the panel encloses: the ring's bore, its shadow),
+            and at least ``min_lit`` of it brighter than that.
         support_gradient: smallest accepted intensity gradient across a side [1/px].
         image_margin_px: corners closer than this to the image border are not reported.
         edge_samples: sub-pixel normals per side.
@@ -66,6 +68,7 @@ class CornerConfig:
     min_side_support: float = 0.6
     foreground_level: float = 0.03
     min_fill: float = 0.9
+    min_lit: float = 0.5
     support_gradient: float = 0.02
     image_margin_px: float = 3.0
     edge_samples: int = 60
@@ -214,18 +217,35 @@ def find_panel(
     gx = cv2.Sobel(image_s, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(image_s, cv2.CV_32F, 0, 1, ksize=3) / 8.0
     profiles = [_LineSupport(ln, centre, 2 * R, gx, gy, config) for ln in L]
-    best = None
+    cos_corner = math.cos(math.radians(config.min_corner_angle_deg))
+    # Quadrilaterals: two crossing pairs; or, close up, one pair and one line crossing it
+    # with the fourth side beyond the image (a virtual line just outside it, opposite the
+    # single line: its corners are out of view and never reported).
+    quads: list[list[int]] = []  # line indices
     for (i, j), (k, m) in itertools.combinations(pairs, 2):
-        if len({i, j, k, m}) < 4:
+        if len({i, j, k, m}) == 4 and abs(float(L[i][:2] @ L[k][:2])) <= cos_corner:
+            quads.append([i, k, j, m])
+    n_real = len(L)
+    virtual: dict[int, int] = {}
+    for (i, j), k in itertools.product(pairs, range(n_real)):
+        if k in (i, j) or abs(float(L[i][:2] @ L[k][:2])) > cos_corner:
             continue
-        if abs(float(L[i][:2] @ L[k][:2])) > math.cos(math.radians(config.min_corner_angle_deg)):
-            continue
-        order = sorted([i, k, j, m], key=lambda q: math.atan2(L[q][1], L[q][0]))
+        if k not in virtual:
+            virtual[k] = len(L)
+            L.append(_beyond_image(L[k], w, h))
+            profiles.append(_LineSupport(L[-1], centre, 2 * R, gx, gy, config))
+        quads.append([i, k, j, virtual[k]])
+    best = None
+    for idx in quads:
+        order = sorted(idx, key=lambda q: math.atan2(L[q][1], L[q][0]))
         corners = [_intersect(L[order[q]], L[order[(q + 1) % 4]]) for q in range(4)]
         if any(c is None for c in corners):
             continue
         C = np.array(corners)
-        if np.max(np.linalg.norm(C - centre, axis=1)) > 2 * R:
+        real = [
+            q for q in range(4) if order[q] < n_real and order[(q + 1) % 4] < n_real
+        ]  # corners between two found lines
+        if np.max(np.linalg.norm(C[real] - centre, axis=1)) > 2 * R:
             continue
         supported = 0.0
         visible_sides = 0
@@ -240,7 +260,8 @@ def find_panel(
             visible_sides += 1
         if visible_sides < 2 or supported <= 0 or (best is not None and supported <= best[0]):
             continue
-        if _fill_fraction(image_s, C, config.foreground_level) < config.min_fill:
+        filled, lit = _fill_fraction(image_s, C, config.foreground_level)
+        if filled < config.min_fill or lit < config.min_lit:
             continue
         best = (supported, np.array([L[q] for q in order]), C)
     if best is None:
@@ -250,6 +271,14 @@ def find_panel(
     if any(c is None for c in crossings):
         return None
     return _refine_quad(image_s, quad, np.array(crossings), gray.shape, config)
+
+
+def _beyond_image(line: np.ndarray, w: int, h: int, margin: float = 16.0) -> np.ndarray:
+    """The line parallel to ``line`` on the far side of the image (outward normal opposite
+    to ``line``'s), ``margin`` px beyond the image's farthest corner in that direction."""
+    n = -line[:2]
+    box = np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0], [w - 1.0, h - 1.0]])
+    return np.array([n[0], n[1], -float(np.max(box @ n)) - margin])
 
 
 def _innermost(
@@ -290,10 +319,17 @@ def _innermost(
     return out
 
 
-def _fill_fraction(image_s: np.ndarray, corners: np.ndarray, level: float) -> float:
-    """Fraction of a grid of points inside the quadrilateral (shrunk by 6 % towards its
-    centroid, clipped to the image) brighter than ``level``: the panel is a filled bright
-    face, unlike a quadrilateral of struts or wing edges with black space inside."""
+def _fill_fraction(image_s: np.ndarray, corners: np.ndarray, level: float) -> tuple[float, float]:
+    """``(filled, lit)``: fractions of a grid of points inside the quadrilateral (shrunk by
+    6 % towards its centroid, clipped to the image) that lie on the panel, and that are
+    brighter than ``level``. The panel is a filled bright face, unlike a quadrilateral of
+    struts or wing edges with black space inside.
+
+    A point darker than ``level`` still lies on the panel where its dark region is enclosed
+    by the quadrilateral's inside: the ring's bore and wall, the ring's shadow on the panel
+    in hard sunlight, dark components. Black space inside a quadrilateral of struts or wing
+    edges reaches past the quadrilateral or to the image border; the enclosed holes do not.
+    (A closed frame of struts encloses its black inside too: ``lit`` tells that apart.)"""
     h, w = image_s.shape
     c = corners.mean(axis=0)
     Q = c + 0.94 * (corners - c)
@@ -304,10 +340,38 @@ def _fill_fraction(image_s: np.ndarray, corners: np.ndarray, level: float) -> fl
     pts = (1 - uu) * (1 - vv) * Q[0] + uu * (1 - vv) * Q[1] + uu * vv * Q[2] + (1 - uu) * vv * Q[3]
     ok = (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)
     if ok.sum() < 10:
-        return 0.0
+        return 0.0, 0.0
     p = pts[ok].astype(np.float32)
     vals = sample_image(image_s, p[:, 0], p[:, 1], "linear")  # inside: border unused
-    return float(np.mean(vals > level))
+    dark = vals <= level
+    lit = 1.0 - float(np.mean(dark))
+    if dark.any():
+        dark[dark] = _reaches_outside(image_s, corners, level, p[dark])
+    return 1.0 - float(np.mean(dark)), lit
+
+
+def _reaches_outside(
+    image_s: np.ndarray, corners: np.ndarray, level: float, points: np.ndarray
+) -> np.ndarray:
+    """For each of ``points`` (dark pixels inside the quadrilateral ``corners``): does its
+    dark region (8-connected pixels at most ``level``) reach outside the quadrilateral or the
+    image border?"""
+    h, w = image_s.shape
+    inside = np.zeros((h + 2, w + 2), np.uint8)  # one pixel of frame: the image border
+    if np.abs(corners).max() > 1e6:
+        return np.ones(len(points), bool)  # a degenerate quadrilateral: nothing enclosed
+    shift = 8  # sub-pixel polygon vertices (fixed point)
+    poly = np.round((corners + 1.0) * (1 << shift)).astype(np.int32)
+    cv2.fillConvexPoly(inside, poly, 1, lineType=cv2.LINE_8, shift=shift)
+    inside[0, :] = inside[-1, :] = 0
+    inside[:, 0] = inside[:, -1] = 0
+    open_ = np.ones((h + 2, w + 2), np.uint8)
+    open_[1:-1, 1:-1] = image_s <= level
+    open_[inside == 0] = 1  # everything outside is "open"
+    _, labels = cv2.connectedComponents(open_, connectivity=8)
+    outside_labels = np.unique(labels[inside == 0])
+    q = np.round(points).astype(int)
+    return np.isin(labels[q[:, 1] + 1, q[:, 0] + 1], outside_labels)
 
 
 class _LineSupport:

@@ -24,6 +24,7 @@ from satpose.frontend.panel import (
     CornerConfig,
     PanelQuad,
     PanelTracker,
+    _fill_fraction,
     find_components,
     find_panel,
 )
@@ -196,6 +197,49 @@ def test_corners_outside_the_image_are_not_visible() -> None:
             assert d[i, match[i]] < 0.05
 
 
+def test_a_panel_with_one_side_beyond_the_image_gives_its_two_corners() -> None:
+    """Close up (2.5 m) with the panel shifted down: its bottom side and both bottom corners
+    lie beyond the image (25-55 px), so only three sides are in view, which pair into no
+    quadrilateral of four found lines. The panel is the found pair and the line crossing it,
+    closed by a side beyond the image: the two top corners visible within 0.05 px of the
+    truth (noise-free, as above), the bottom two not visible."""
+    T = Rigid3(R=CAM_FROM_TARGET.R, t=CAM_FROM_TARGET.t + np.array([0.0, 0.4, -1.5]))
+    truth = _project(T, PANEL)
+    assert (truth[:, 1] > H + 20).sum() == 2 and (truth[:, 1] < H - 100).sum() == 2
+    ring = _ring_ellipse(T)
+    g, g8 = _draw(truth, ring, blobs=np.zeros((0, 3)))
+    quad = _find(g, g8, ring)
+    assert quad is not None
+    assert quad.visible.sum() == 2
+    d = np.linalg.norm(quad.corners[quad.visible][:, None] - truth[None], axis=2)
+    assert sorted(d.argmin(axis=1)) == [0, 1]
+    assert d.min(axis=1).max() < 0.05
+
+
+def test_the_rings_bore_and_shadow_are_part_of_the_panel(scene) -> None:  # type: ignore[no-untyped-def]
+    """Hard sunlight: the ring's bore is black and its wall casts a black shadow on the panel
+    (the ring's ellipse shifted by 0.6 of its semi-axes), together 16 % of the panel's
+    inside, more than the 10 % of dark inside that a quadrilateral of struts with black
+    space would show (``min_fill``). Enclosed by the lit panel, they are holes in it, not
+    space: the panel is found, corners within 0.05 px (noise-free, as above)."""
+    truth, ring, _, _ = scene
+    img = 0.7 * _polygon_cover(truth)
+    shadow = Ellipse(
+        cx=ring.cx + 0.6 * ring.a, cy=ring.cy + 0.6 * ring.b, a=ring.a, b=ring.b, theta=ring.theta
+    )
+    img += (0.005 - img) * _ellipse_cover(shadow)
+    img += (0.9 - img) * _ellipse_cover(ring)
+    img += (0.005 - img) * _ellipse_cover(ring, 0.8)
+    g = np.clip(img, 0, 1).astype(np.float32)
+    filled, lit = _fill_fraction(smoothed(g, CORNERS.edges), truth, CORNERS.foreground_level)
+    assert lit < CORNERS.min_fill - 0.05 and filled == 1.0
+    quad = _find(g, np.round(g * 255).astype(np.uint8), ring)
+    assert quad is not None and quad.visible.all()
+    d = np.linalg.norm(quad.corners[:, None] - truth[None], axis=2)
+    assert sorted(d.argmin(axis=1)) == [0, 1, 2, 3]
+    assert d.min(axis=1).max() < 0.05
+
+
 def test_corners_of_a_ragged_side_are_not_visible(scene) -> None:  # type: ignore[no-untyped-def]
     """One side drawn rippled (RMS 0.71 px about its line, above max_line_rms_px = 0.6): its
     rms_px is above the limit and exactly its two corners are not visible; the other two
@@ -220,7 +264,9 @@ def test_corners_of_a_ragged_side_are_not_visible(scene) -> None:  # type: ignor
 def test_refusals_give_none(scene) -> None:  # type: ignore[no-untyped-def]
     """No panel -> None, never an exception: a black image; a ring too close to the border
     for a search window (< 16 px); a panel that does not surround the ring (the ring drawn
-    beside it); and an outline of thin bright struts with black space inside (the fill test)."""
+    beside it); an outline of thin bright struts with black space inside (the fill test: the
+    black inside is enclosed by the struts, so it is the lit fraction that refuses it); and
+    the struts' outline with a gap in one side, where the black inside reaches out."""
     truth, ring, g, g8 = scene
     dark = np.zeros_like(g)
     assert _find(dark, dark.astype(np.uint8), ring) is None
@@ -234,6 +280,11 @@ def test_refusals_give_none(scene) -> None:  # type: ignore[no-untyped-def]
     inner = c + (truth - c) * 0.95
     struts = 0.7 * (_polygon_cover(truth) - _polygon_cover(inner)) + 0.9 * _ellipse_cover(ring)
     gs = np.clip(struts, 0, 1).astype(np.float32)
+    assert _find(gs, np.round(gs * 255).astype(np.uint8), ring) is None
+    gap = np.hypot(XX - 0.5 * (truth[1, 0] + truth[2, 0]), YY - 0.5 * (truth[1, 1] + truth[2, 1]))
+    gs[gap < 20] = 0.0
+    filled, _ = _fill_fraction(smoothed(gs, CORNERS.edges), truth, CORNERS.foreground_level)
+    assert filled < 0.5
     assert _find(gs, np.round(gs * 255).astype(np.uint8), ring) is None
 
 
