@@ -69,6 +69,8 @@ class StrutDetectorConfig:
             (76 px at the defaults), ``max_angle_deg`` holds as before.
         bar_width_px: (min, max) distance between the two edges of a strut [px].
         merge_distance_px: collinear bars closer than this (centre lines) are one strut [px].
+        merge_width_ratio: ... if their widths differ by at most this factor (a short stub
+            in line with a solar array's cell-grid bars is not one of them).
         candidates: the longest this many strut candidates enter the hypothesis search.
         end_tolerance: how far (fraction of the base length) an intersection may lie from the
             observed end of a strut.
@@ -129,6 +131,7 @@ class StrutDetectorConfig:
     short_edge_px: float = 4.0
     bar_width_px: tuple[float, float] = (3.0, 120.0)
     merge_distance_px: float = 4.0
+    merge_width_ratio: float = 1.5
     candidates: int = 8
     end_tolerance: float = 0.12
     track_distance_px: float = 25.0
@@ -411,6 +414,9 @@ def _merge(bars: list[Strut], config: StrutDetectorConfig) -> list[Strut]:
             if used[j] or abs(float(o.direction @ b.direction)) < cos_max:
                 continue
             if abs(float((o.point - b.point) @ n)) > config.merge_distance_px:
+                continue
+            wide, narrow = max(o.width_px, b.width_px), min(o.width_px, b.width_px)
+            if wide > config.merge_width_ratio * narrow:
                 continue
             group.append(o)
             used[j] = True

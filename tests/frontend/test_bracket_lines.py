@@ -199,3 +199,33 @@ def test_equilateral_bracket_without_a_yoke_is_refused_not_mislabelled() -> None
     assert det.result is not None and det.result.pose is not None, det.reason
     R_err = np.degrees(np.linalg.norm(cv2.Rodrigues(det.result.pose.R.T @ T.R)[0]))
     assert R_err < 2.0
+
+
+def test_collinear_bars_of_different_widths_stay_apart() -> None:
+    """`_merge` joins collinear bars into one strut only where their widths agree within
+    ``merge_width_ratio`` (1.5): pieces of one strut (LSD breaks a long edge) have one width;
+    a short stub in line with a solar array's cell-grid bars (tuning seed 50: a 14 px wide,
+    80 px stub, grid bars 44-66 px wide on the same line) is not one of them, and merged it
+    would be lost as a stub candidate. Same line (centre lines within 1 px, 1 deg apart)."""
+    cfg = StrutDetectorConfig()
+    d = np.array([math.cos(0.6), math.sin(0.6)])
+    d2 = np.array([math.cos(0.6 + math.radians(1.0)), math.sin(0.6 + math.radians(1.0))])
+    n = np.array([-d[1], d[0]])
+
+    def bar(start: float, length: float, width: float, direction: np.ndarray) -> bl.Strut:
+        c = np.array([300.0, 200.0]) + (start + length / 2) * d
+        return bl.Strut(
+            point=c, direction=direction, s0=-length / 2, s1=length / 2,
+            support_px=length, residual_px=0.1, width_px=width,
+        )  # fmt: skip
+
+    stub = bar(0.0, 80.0, 14.0, d)
+    grid = bar(100.0, 300.0, 60.0, d2)
+    grid = bl.Strut(**{**grid.__dict__, "point": grid.point + 1.0 * n})
+    apart = bl._merge([stub, grid], cfg)
+    assert len(apart) == 2
+    assert sorted(round(s.width_px) for s in apart) == [14, 60]
+    piece = bar(100.0, 300.0, 16.0, d2)  # the same strut further on: 16 / 14 < 1.5
+    joined = bl._merge([stub, piece], cfg)
+    assert len(joined) == 1
+    assert joined[0].length == pytest.approx(400.0, abs=3.0)
