@@ -69,8 +69,9 @@ class StrutDetectorConfig:
             (76 px at the defaults), ``max_angle_deg`` holds as before.
         bar_width_px: (min, max) distance between the two edges of a strut [px].
         merge_distance_px: collinear bars closer than this (centre lines) are one strut [px].
-        merge_width_ratio: ... if their widths differ by at most this factor (a short stub
-            in line with a solar array's cell-grid bars is not one of them).
+        merge_width_ratio: ... if their widths differ by at most this factor (the paper's
+            view, `partial_candidates`: a short stub in line with a solar array's cell-grid
+            bars is not one of them).
         candidates: the longest this many strut candidates enter the hypothesis search.
         end_tolerance: how far (fraction of the base length) an intersection may lie from the
             observed end of a strut.
@@ -397,8 +398,10 @@ def _parallel_pairs(
     return out
 
 
-def _merge(bars: list[Strut], config: StrutDetectorConfig) -> list[Strut]:
-    """Collinear bars -> one strut each (greedy, longest first)."""
+def _merge(bars: list[Strut], config: StrutDetectorConfig, by_width: bool = False) -> list[Strut]:
+    """Collinear bars -> one strut each (greedy, longest first). ``by_width``: only bars whose
+    widths agree within ``merge_width_ratio`` (the paper's view, where short stubs lie in line
+    with a cell grid; `detect_struts`, the whole triangle, merges as before)."""
     order = sorted(bars, key=lambda b: -b.length)
     used = [False] * len(order)
     out: list[Strut] = []
@@ -416,7 +419,7 @@ def _merge(bars: list[Strut], config: StrutDetectorConfig) -> list[Strut]:
             if abs(float((o.point - b.point) @ n)) > config.merge_distance_px:
                 continue
             wide, narrow = max(o.width_px, b.width_px), min(o.width_px, b.width_px)
-            if wide > config.merge_width_ratio * narrow:
+            if by_width and wide > config.merge_width_ratio * narrow:
                 continue
             group.append(o)
             used[j] = True
@@ -1859,7 +1862,8 @@ def partial_candidates(
         return StrutDetection(None, None, seg, reason=f"only {len(seg)} line segments")
     scaled = _scaled(img)
     cands = sorted(
-        _merge(_bars(scaled, seg, config, short_edges), config), key=lambda c: -c.support_px
+        _merge(_bars(scaled, seg, config, short_edges), config, by_width=True),
+        key=lambda c: -c.support_px,
     )
     cands = _finished(scaled, cands, config, silhouette)
     if len(cands) < 3:

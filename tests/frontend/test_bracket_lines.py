@@ -206,7 +206,8 @@ def test_collinear_bars_of_different_widths_stay_apart() -> None:
     ``merge_width_ratio`` (1.5): pieces of one strut (LSD breaks a long edge) have one width;
     a short stub in line with a solar array's cell-grid bars (tuning seed 50: a 14 px wide,
     80 px stub, grid bars 44-66 px wide on the same line) is not one of them, and merged it
-    would be lost as a stub candidate. Same line (centre lines within 1 px, 1 deg apart)."""
+    would be lost as a stub candidate (the paper's view, ``by_width``; `detect_struts` merges
+    as before). Same line (centre lines within 1 px, 1 deg apart)."""
     cfg = StrutDetectorConfig()
     d = np.array([math.cos(0.6), math.sin(0.6)])
     d2 = np.array([math.cos(0.6 + math.radians(1.0)), math.sin(0.6 + math.radians(1.0))])
@@ -222,10 +223,11 @@ def test_collinear_bars_of_different_widths_stay_apart() -> None:
     stub = bar(0.0, 80.0, 14.0, d)
     grid = bar(100.0, 300.0, 60.0, d2)
     grid = bl.Strut(**{**grid.__dict__, "point": grid.point + 1.0 * n})
-    apart = bl._merge([stub, grid], cfg)
+    apart = bl._merge([stub, grid], cfg, by_width=True)
     assert len(apart) == 2
     assert sorted(round(s.width_px) for s in apart) == [14, 60]
     piece = bar(100.0, 300.0, 16.0, d2)  # the same strut further on: 16 / 14 < 1.5
-    joined = bl._merge([stub, piece], cfg)
+    joined = bl._merge([stub, piece], cfg, by_width=True)
+    assert len(bl._merge([stub, grid], cfg)) == 1  # the whole triangle's search: as before
     assert len(joined) == 1
     assert joined[0].length == pytest.approx(400.0, abs=3.0)
