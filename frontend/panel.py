@@ -356,10 +356,10 @@ def _reaches_outside(
     """For each of ``points`` (dark pixels inside the quadrilateral ``corners``): does its
     dark region (8-connected pixels at most ``level``) reach outside the quadrilateral or the
     image border?"""
-    h, w = image_s.shape
-    inside = np.zeros((h + 2, w + 2), np.uint8)  # one pixel of frame: the image border
     if np.abs(corners).max() > 1e6:
         return np.ones(len(points), bool)  # a degenerate quadrilateral: nothing enclosed
+    h, w = image_s.shape
+    inside = np.zeros((h + 2, w + 2), np.uint8)  # one pixel of frame: the image border
     shift = 8  # sub-pixel polygon vertices (fixed point)
     poly = np.round((corners + 1.0) * (1 << shift)).astype(np.int32)
     cv2.fillConvexPoly(inside, poly, 1, lineType=cv2.LINE_8, shift=shift)
