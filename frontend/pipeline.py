@@ -82,6 +82,9 @@ from satpose.frontend.stereo import (
 
 log = logging.getLogger(__name__)
 
+RingResult = tuple[list[Circle3D], dict[str, EllipseObservation], dict[str, Ellipse]]
+"""The ring stage's candidate circles (best first), ellipse observations and ellipses."""
+
 
 @dataclass(frozen=True, kw_only=True)
 class StereoRingConfig:
@@ -122,6 +125,13 @@ class StereoRingConfig:
             which stereo reconstructs as consistently as the ring (tuning seeds 31, 32, 47:
             0.07-0.10 m circles in foil taken for rings of 0.28-0.65 m, 0.6-0.7 m off).
             0: no lower bound. A stated `known_ring` is used instead.
+        colour_contrast: when the grey images give no ring, acquire it again on the colour
+            images' colour contrast (`Undistorter.colour_contrast`: largest minus smallest
+            channel) and track it there while it holds: a dyed rim (blue or gold anodising)
+            on a neutral panel, or a neutral rim on gold foil, can have almost the
+            luminance of what surrounds it (tuning seed 32: a blue rim on grey foil, no
+            ring-like ellipse in grey, its outer rim within 0.1 px on the colour
+            contrast). Grey cameras: nothing changes.
     """
 
     max_rms_px: float = 0.6
@@ -139,6 +149,7 @@ class StereoRingConfig:
     sweep_range_m: tuple[float, float] = (1.0, 30.0)
     sweep_step_px: float = 1.5
     min_radius_m: float = 0.1
+    colour_contrast: bool = True
 
     def __post_init__(self) -> None:
         b = self.behind_sigma
@@ -280,6 +291,7 @@ class StereoFrontend:
         self.target = TargetFrameTracker(config=cfg.pose)
         self._history: list[tuple[float, Rigid3]] = []
         self._radii: list[float] = []
+        self._ring_channel = "grey"  # the images the ring is tracked on: "grey" or "colour"
         self._last_ring: tuple[int, float, RingMeasurement] | None = None  # index, t_s, ring
         self._previous_index: int | None = None  # the frame before this one that came in
         self._index: int | None = None
@@ -327,6 +339,7 @@ class StereoFrontend:
         the landmarks are re-identified (`TargetFrameTracker.relocalize`)."""
         for ring in self.rings.values():
             ring.reset()
+        self._ring_channel = "grey"
         for panel in self.panels.values():
             panel.reset()
         self.orb.reset()
@@ -352,7 +365,9 @@ class StereoFrontend:
         predicted = self._predict(t_s)
         with timer("ring"):
             outlines, gap = self._gap_outlines(index, t_s)
-            circles, obs, ellipses = self._ring(imgs, failures, outlines, gap, timer)
+            circles, obs, ellipses = self._ring(
+                imgs, {"left": left, "right": right}, failures, outlines, gap, timer
+            )
         landmarks: list[LandmarkMeasurement] = []
         with timer("panel"):
             detections = self._panel(imgs, ellipses, failures)
@@ -466,11 +481,67 @@ class StereoFrontend:
     def _ring(
         self,
         imgs: dict[str, PreparedImage],
+        raw: dict[str, np.ndarray],
         failures: list[str],
         outlines: dict[str, np.ndarray],
         gap: int,
         timer: _Timer,
-    ) -> tuple[list[Circle3D], dict[str, EllipseObservation], dict[str, Ellipse]]:
+    ) -> RingResult:
+        """`_ring_in` on the images the ring is tracked on (grey, or colour contrast), then,
+        if that finds no ring, on the other ones (`StereoRingConfig.colour_contrast`; colour
+        images only). The failures reported are those of the grey images when neither
+        finds the ring."""
+        order = ["grey", "colour"] if self._ring_channel == "grey" else ["colour", "grey"]
+        tried: dict[str, tuple[list[str], RingResult]] = {}
+        for channel in order:
+            images = self._ring_images(channel, imgs, raw, timer)
+            if images is None:
+                continue
+            if channel != self._ring_channel:
+                for tracker in self.rings.values():
+                    tracker.reset()  # the tracks follow edges of the other images
+                self._ring_channel = channel
+            notes: list[str] = []
+            found = self._ring_in(images, notes, outlines, gap, timer)
+            if found[0]:
+                failures += notes
+                return found
+            tried[channel] = (notes, found)
+        self._ring_channel = "grey"
+        notes, found = tried["grey"]
+        failures += notes
+        return found
+
+    def _ring_images(
+        self,
+        channel: str,
+        imgs: dict[str, PreparedImage],
+        raw: dict[str, np.ndarray],
+        timer: _Timer,
+    ) -> dict[str, PreparedImage] | None:
+        """The images of ``channel``: ``imgs`` for "grey"; for "colour", both cameras'
+        colour contrast, or None (grey cameras, a colourless scene, switched off)."""
+        if channel == "grey":
+            return imgs
+        if not self.config.stereo_ring.colour_contrast:
+            return None
+        with timer("colour_contrast"):
+            out = {}
+            for cam, image in raw.items():
+                c = self.undistort[cam].colour_contrast(image)
+                if c is None or c.problem is not None:
+                    return None
+                out[cam] = c
+        return out
+
+    def _ring_in(
+        self,
+        imgs: dict[str, PreparedImage],
+        failures: list[str],
+        outlines: dict[str, np.ndarray],
+        gap: int,
+        timer: _Timer,
+    ) -> RingResult:
         """Ring ellipses in both images and the candidate 3-D circles they admit (the cone's
         two-fold ambiguity survives a short baseline: both are kept, best fit first).
 

@@ -94,7 +94,31 @@ class Undistorter:
                 f"image of shape {img.shape} does not match the camera "
                 f"({self.camera.width}x{self.camera.height})"
             )
-        gray = self._gray(img)
+        return self._undistorted(img, self._gray(img))
+
+    def colour_contrast(self, image: np.ndarray) -> PreparedImage | None:
+        """The colour-contrast image of a BGR ``image``, undistorted like `__call__`: per
+        pixel the largest minus the smallest of its three channels, [0, 1]. A neutral
+        surface (grey, white or black) is 0 there, a dyed or gold one is not, whatever
+        its brightness: a blue anodised rim on a grey panel of the same luminance is an
+        edge here and hardly one in grey. None for a grey (2-D) image; an image without
+        colour is "too dark" (its `PreparedImage.problem`)."""
+        img = np.asarray(image)
+        if img.ndim != 3 or img.shape[2] != 3:
+            return None
+        if img.shape[:2] != (self.camera.height, self.camera.width):
+            raise ImageError(
+                f"image of shape {img.shape} does not match the camera "
+                f"({self.camera.width}x{self.camera.height})"
+            )
+        bgr = [self._gray(np.ascontiguousarray(img[..., k])) for k in range(3)]
+        chroma = cv2.max(cv2.max(bgr[0], bgr[1]), bgr[2]) - cv2.min(
+            cv2.min(bgr[0], bgr[1]), bgr[2]
+        )
+        return self._undistorted(img, chroma)
+
+    def _undistorted(self, img: np.ndarray, gray: np.ndarray) -> PreparedImage:
+        """``gray`` (float32 [0, 1] of the raw ``img``) undistorted, prepared and checked."""
         if self._maps is not None:
             gray = cv2.remap(
                 gray,

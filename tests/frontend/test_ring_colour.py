@@ -1,0 +1,102 @@
+"""The ring acquired on colour contrast when grey shows none
+(`StereoRingConfig.colour_contrast`, `Undistorter.colour_contrast`).
+
+Drawn BGR images (OpenCV, 4x supersampled, averaged, blurred; seeded noise): the same on
+every CPU. A blue anodised rim face on a grey panel of the same luminance is the case of
+tuning seed 32 of the random family (docs/frontend.md, "A rim of the panel's brightness").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from satpose.datasets.camera import PinholeCamera
+from satpose.datasets.geometry import Rigid3
+from satpose.datasets.sequence import Calibration
+from satpose.frontend.pipeline import FrontendConfig, StereoFrontend
+from satpose.frontend.preprocess import Undistorter
+from satpose.frontend.rim import rim_samples
+from satpose.frontend.stereo import Circle3D
+
+W, H, F = 640, 480, 800.0
+K = np.array([[F, 0, W / 2 - 0.5], [0, F, H / 2 - 0.5], [0, 0, 1.0]])
+RIGHT_FROM_LEFT = Rigid3(R=np.eye(3), t=np.array([-0.3, 0.0, 0.0]))
+S = 4  # supersampling
+PANEL_BGR = (110.0, 110.0, 110.0)
+RIM_BGR = (200.0, 118.0, 60.0)  # luminance 0.114 B + 0.587 G + 0.299 R = 110.0: the panel's
+
+
+def _rim() -> Circle3D:
+    """The outer front rim: 0.30 m, 4 m away, tilted 25 deg about the vertical."""
+    t = math.radians(25.0)
+    normal = -np.array([math.sin(t), 0.0, math.cos(t)])
+    return Circle3D(
+        center=np.array([0.1, 0.05, 4.0]), normal=normal, radius=0.30, covariance=np.eye(7)
+    )
+
+
+def _poly(T: Rigid3, c: Circle3D) -> np.ndarray:
+    P, _ = rim_samples(c, 1440)
+    x = (P @ T.R.T + T.t) @ K.T
+    x = x[:, :2] / x[:, 2:3]
+    return np.round((x + 0.5) * S * 16 - 0.5 * 16).astype(np.int32)
+
+
+def _blue_rim(T: Rigid3, seed: int) -> np.ndarray:
+    """BGR uint8: a grey panel filling the view, a blue rim face 0.30 -> 0.27 m of the
+    panel's luminance, the panel again inside; noise 1 grey level per channel."""
+    rim = _rim()
+    img = np.empty((H * S, W * S, 3), np.float32)
+    img[:] = PANEL_BGR
+    cv2.fillPoly(img, [_poly(T, rim)], RIM_BGR, lineType=cv2.LINE_8, shift=4)
+    cv2.fillPoly(img, [_poly(T, replace(rim, radius=0.27))], PANEL_BGR, cv2.LINE_8, shift=4)
+    small = img.reshape(H, S, W, S, 3).mean(axis=(1, 3))
+    small = cv2.GaussianBlur(small, (0, 0), 0.6)
+    small += np.random.default_rng(seed).normal(0.0, 1.0, small.shape)
+    return np.clip(small + 0.5, 0, 255).astype(np.uint8)
+
+
+def _calibration() -> Calibration:
+    cam = PinholeCamera(width=W, height=H, K=K)
+    return Calibration(left=cam, right=cam, right_from_left=RIGHT_FROM_LEFT)
+
+
+def test_colour_contrast_is_the_channel_spread() -> None:
+    """Exact: (max - min) / 255 per pixel; None for a grey image; a colourless image is
+    'too dark' there."""
+    und = Undistorter(PinholeCamera(width=W, height=H, K=K))
+    img = np.full((H, W, 3), 90, np.uint8)
+    img[10:20, 30:50] = (200, 118, 60)
+    c = und.colour_contrast(img)
+    assert c is not None
+    assert c.gray[15, 40] == pytest.approx(140 / 255, abs=1e-6)
+    assert c.gray[100, 100] == 0.0
+    assert und.colour_contrast(np.full((H, W), 90, np.uint8)) is None
+    neutral = und.colour_contrast(np.full((H, W, 3), 90, np.uint8))
+    assert neutral is not None and neutral.problem == "too dark"
+
+
+def test_rim_of_the_panels_luminance_is_acquired_on_colour() -> None:
+    """Drawn stereo pair: in grey (the images converted, or the colour pass off) no ring; on
+    colour contrast the ring's radius within 3 mm and its centre within 1 cm (noise 1 grey
+    level, 0.6 px blur: the band's outer edge), and the next frame follows it there."""
+    left, right = _blue_rim(Rigid3.identity(), 5), _blue_rim(RIGHT_FROM_LEFT, 6)
+    calib = _calibration()
+    grey = [cv2.cvtColor(x, cv2.COLOR_BGR2GRAY) for x in (left, right)]
+    assert StereoFrontend(calib).process(0, 0.0, *grey).ring is None
+    cfg = FrontendConfig()
+    off = replace(cfg, stereo_ring=replace(cfg.stereo_ring, colour_contrast=False))
+    assert StereoFrontend(calib, off).process(0, 0.0, left, right).ring is None
+    fe = StereoFrontend(calib)
+    rim = _rim()
+    for k in range(2):
+        m = fe.process(k, float(k), left, right)
+        assert m.ring is not None, m.failures
+        assert abs(m.ring.radius_m - rim.radius) < 0.003, m.ring.radius_m
+        assert float(np.linalg.norm(m.ring.center_m - rim.center)) < 0.01, m.ring.center_m
+    assert fe._ring_channel == "colour"
