@@ -391,6 +391,8 @@ def main() -> None:
     seeds = list(TUNING_SEEDS if args.set == "tuning" else VALIDATION_SEEDS)[
         args.first : args.first + args.count
     ]
+    if not seeds:
+        parser.error(f"--first {args.first} --count {args.count}: no seed of the {args.set} set")
     rows = [one(seed, args) for seed in seeds]
     suffix = "".join(f"_{w}" for w in variant_words(args))
     suffix += f"_from_{seeds[0]}" if args.first else ""
