@@ -88,12 +88,7 @@ class Undistorter:
 
     def __call__(self, image: np.ndarray) -> PreparedImage:
         """Grey, [0, 1], undistorted. Accepts (H, W) or (H, W, 3) BGR, uint8 or uint16."""
-        img = np.asarray(image)
-        if img.ndim not in (2, 3) or img.shape[:2] != (self.camera.height, self.camera.width):
-            raise ImageError(
-                f"image of shape {img.shape} does not match the camera "
-                f"({self.camera.width}x{self.camera.height})"
-            )
+        img = self._checked(image)
         return self._undistorted(img, self._gray(img))
 
     def colour_contrast(self, image: np.ndarray) -> PreparedImage | None:
@@ -103,19 +98,25 @@ class Undistorter:
         its brightness: a blue anodised rim on a grey panel of the same luminance is an
         edge here and hardly one in grey. None for a grey (2-D) image; an image without
         colour is "too dark" (its `PreparedImage.problem`)."""
-        img = np.asarray(image)
+        img = self._checked(image)
         if img.ndim != 3 or img.shape[2] != 3:
             return None
-        if img.shape[:2] != (self.camera.height, self.camera.width):
+        bgr = [self._gray(np.ascontiguousarray(img[..., k])) for k in range(3)]
+        chroma = cv2.max(cv2.max(bgr[0], bgr[1]), bgr[2]) - cv2.min(cv2.min(bgr[0], bgr[1]), bgr[2])
+        return self._undistorted(img, chroma)
+
+    def _checked(self, image: np.ndarray) -> np.ndarray:
+        """``image`` as an array, (H, W) or (H, W, C) of this camera's size.
+
+        Raises:
+            ImageError: another shape."""
+        img = np.asarray(image)
+        if img.ndim not in (2, 3) or img.shape[:2] != (self.camera.height, self.camera.width):
             raise ImageError(
                 f"image of shape {img.shape} does not match the camera "
                 f"({self.camera.width}x{self.camera.height})"
             )
-        bgr = [self._gray(np.ascontiguousarray(img[..., k])) for k in range(3)]
-        chroma = cv2.max(cv2.max(bgr[0], bgr[1]), bgr[2]) - cv2.min(
-            cv2.min(bgr[0], bgr[1]), bgr[2]
-        )
-        return self._undistorted(img, chroma)
+        return img
 
     def _undistorted(self, img: np.ndarray, gray: np.ndarray) -> PreparedImage:
         """``gray`` (float32 [0, 1] of the raw ``img``) undistorted, prepared and checked."""
@@ -139,12 +140,7 @@ class Undistorter:
         Raises:
             ImageError: as `__call__`, or an empty box.
         """
-        img = np.asarray(image)
-        if img.ndim not in (2, 3) or img.shape[:2] != (self.camera.height, self.camera.width):
-            raise ImageError(
-                f"image of shape {img.shape} does not match the camera "
-                f"({self.camera.width}x{self.camera.height})"
-            )
+        img = self._checked(image)
         h, w = img.shape[:2]
         x0, y0 = max(int(box[0]), 0), max(int(box[1]), 0)
         x1, y1 = min(int(box[2]), w), min(int(box[3]), h)
