@@ -1,6 +1,6 @@
 """The stereo pipeline on the random scene family: accuracy, bias and honesty per sequence.
 
-    python benchmarks/random_family.py --set validation --count 40        # the issue's table
+    python benchmarks/random_family.py --set validation --count 40 --jobs 2   # the issue's table
     python benchmarks/random_family.py --set tuning --count 8 --frames 10 --spp 8
     python benchmarks/random_family.py --set tuning --count 8 --frames 10 --size 640x480 --spp 8
 
@@ -24,8 +24,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import multiprocessing
 import time
 import traceback
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -139,11 +141,13 @@ def variant_words(args: argparse.Namespace) -> list[str]:
     ]
 
 
-def one(seed: int, args: argparse.Namespace) -> dict[str, Any]:
+def member(seed: int, args: argparse.Namespace) -> tuple[Scenario, dict[str, Any]]:
+    """The family member ``seed`` at the benchmark's frames, size and samples, and the
+    start of its table row (the scene)."""
     draw = random_draw(seed)
     s = scaled(draw.scenario, frames=args.frames, size=args.size, spp=args.spp)
     m = s.motion
-    row: dict[str, Any] = {
+    return s, {
         "seed": seed,
         "ring": f"{s.target.ring.outer_radius_m:.2f}/{s.target.ring.height_m:.2f}",
         "rim": draw.rim,
@@ -152,6 +156,10 @@ def one(seed: int, args: argparse.Namespace) -> dict[str, Any]:
         "tilt": m.facing_tilt_deg,
         "range": float(np.linalg.norm(m.start_position_m)),
     }
+
+
+def one(seed: int, args: argparse.Namespace) -> dict[str, Any]:
+    s, row = member(seed, args)
     tag = f"{seed}-{s.rig.width}x{s.rig.height}-{s.render.spp}spp-{s.frames}f"
     seq = args.root / tag
     run = args.root / "-".join([f"{tag}-run", *variant_words(args)])
@@ -184,6 +192,27 @@ def one(seed: int, args: argparse.Namespace) -> dict[str, Any]:
     return row
 
 
+def score(seeds: list[int], args: argparse.Namespace) -> list[dict[str, Any]]:
+    """`one` per seed, in seed order: in this process, or with ``args.jobs`` > 1 in that
+    many worker processes (fresh interpreters: no state inherited between members). A worker
+    that dies (a crash below Python) is that member's exception row, and the others go on."""
+    if args.jobs == 1:
+        return [one(seed, args) for seed in seeds]
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx) as pool:
+        futures = [pool.submit(one, seed, args) for seed in seeds]
+        rows = []
+        for seed, fut in zip(seeds, futures, strict=True):
+            try:
+                rows.append(fut.result())
+            except Exception as exc:  # the worker itself failed, not the pipeline
+                why = str(exc).splitlines()[0][:120] if str(exc) else ""
+                row = member(seed, args)[1]
+                row["status"] = f"exception: {type(exc).__name__}: {why}"
+                rows.append(row)
+    return rows
+
+
 def _f(x: Any, fmt: str) -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
 
@@ -206,6 +235,7 @@ def markdown(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
         + ("" if args.consider is None else f" --consider {args.consider:g}")
         + ("" if args.config is None else f" --config {args.config}")
         + ("" if args.out is None else f" --out {args.out}")
+        + ("" if args.jobs == 1 else f" --jobs {args.jobs}")
         + f"` ({machine_summary()}; {time.strftime('%Y-%m-%d')}). Do not edit by hand.",
         "",
         "Per sequence: per-frame (frontend) and offline-smoother mean errors (position of the "
@@ -387,13 +417,22 @@ def main() -> None:
         "options above apply on top; runs and page are named after its file",
     )
     parser.add_argument("--out", type=Path)
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="sequences scored at once, each in its own process (results do not depend on "
+        "it; the CPU times of a loaded machine do)",
+    )
     args = parser.parse_args()
+    if args.jobs < 1:
+        parser.error(f"--jobs {args.jobs}: must be >= 1")
     seeds = list(TUNING_SEEDS if args.set == "tuning" else VALIDATION_SEEDS)[
         args.first : args.first + args.count
     ]
     if not seeds:
         parser.error(f"--first {args.first} --count {args.count}: no seed of the {args.set} set")
-    rows = [one(seed, args) for seed in seeds]
+    rows = score(seeds, args)
     suffix = "".join(f"_{w}" for w in variant_words(args))
     suffix += f"_from_{seeds[0]}" if args.first else ""
     # the family's own image size (the rig's, 1024x768) has the plain page names; a scaled
