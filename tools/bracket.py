@@ -62,11 +62,11 @@ from satpose.frontend.bracket_lines import (
     Strut,
     StrutDetection,
     StrutDetectorConfig,
+    decided_frame_pose,
     detect_partial,
     detect_struts,
     partial_candidates,
     partial_hypotheses,
-    refine_partial_pose,
     silhouette_candidates,
 )
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
@@ -399,31 +399,16 @@ def run_bracket(
                     return replace(det, observation=None, struts=None, result=None), None, why
                 chosen = hyps[d.candidate]
                 assert chosen.detection is not None
-                # the frame's own quantities, from the track's fitted pose: the per-frame
-                # maximum of the likelihood in the chosen labelling's basin. Without the
-                # struts' tapers: they choose the basin (the labelling), but as a pose
-                # measurement they are biased (measured / true 1.02-1.16 on the tuning
-                # members, docs/bracket.md "Strut taper"; tuning seed 1 was reported 5-8 deg
-                # off with them)
+                # the frame's own maximum of the likelihood in the decided basin
                 start = d.pose if d.pose is not None else chosen.refined
-                pose, cov, _ = refine_partial_pose(start, replace(chosen.model, tapers=()))
-                if d.pose is not None and not labeller.agree(d.pose, pose) and chosen.model.tapers:
-                    # the points alone have no maximum near the decided track: where the
-                    # stubs are short their directions hardly constrain the apex, and the
-                    # tapers are what holds the pose (tuning seed 50, visible fraction 0.18:
-                    # without them the refit slid 12-16 deg off in 10 of 12 frames, with
-                    # them it stays 0.8-4.2 deg from the truth, as the decided track)
-                    pose, cov, _ = refine_partial_pose(start, chosen.model)
-                if d.pose is not None and not labeller.agree(d.pose, pose):
-                    # the frame's own likelihood has no maximum near the decided track (the
-                    # true pair of P3P roots turned complex in noise) and the refit slid to
-                    # another root: that pose is another answer than the one decided
-                    # (tuning seed 8, frame 0: track 12 deg, the frame's maximum 23 deg off)
+                fitted = decided_frame_pose(start, chosen.model, d.pose, labeller.agree)
+                if fitted is None:
                     why = (
                         "the frame's own best pose departs from the decided track "
                         f"(decided with log-likelihood ratio {d.log_lr:.1f})"
                     )
                     return replace(det, observation=None, struts=None, result=None), None, why
+                pose, cov = fitted
                 res = BracketResult(pose=pose, covariance=cov, selected_by="sequence")
                 return chosen.detection, res, ""
 
