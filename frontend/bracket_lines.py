@@ -1261,11 +1261,13 @@ def decided_frame_pose(
     slid to another root: that pose is not reported (tuning seed 8, frame 0: track 12 deg,
     the frame's maximum 23 deg off)."""
     pose, cov, _ = refine_partial_pose(start, replace(model, tapers=()))
-    if decided is not None and not agree(decided, pose) and model.tapers:
+    if decided is None or agree(decided, pose):
+        return pose, cov
+    if model.tapers:
         pose, cov, _ = refine_partial_pose(start, model)
-    if decided is not None and not agree(decided, pose):
-        return None
-    return pose, cov
+        if agree(decided, pose):
+            return pose, cov
+    return None
 
 
 @dataclass(frozen=True)
