@@ -35,7 +35,7 @@ import numpy as np
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix
 from satpose.datasets.sequence import Calibration, Frame
-from satpose.frontend.conics import ConicError, Ellipse
+from satpose.frontend.conics import ConicError, Ellipse, conic_to_ellipse
 from satpose.frontend.edges import smoothed
 from satpose.frontend.ellipses import DetectedEllipse, EllipseDetectorConfig, detect_ellipses
 from satpose.frontend.landmarks import LandmarkConfig, LandmarkTracker
@@ -72,6 +72,7 @@ from satpose.frontend.stereo import (
     Circle3D,
     GeometryFailure,
     StereoRig,
+    circle_conic,
     circle_rms,
     circle_scale,
     cone_circle_candidates,
@@ -113,8 +114,9 @@ class StereoRingConfig:
             within the plane test's reach.
         sweep: when one camera's acquisition finds no ring candidate at all and the other
             does, look for the other's candidates along their epipolar lines
-            (`StereoFrontend._swept`): each is shifted through the disparities of
-            ``sweep_range_m`` in steps of ``sweep_step_px`` and refined on edges there.
+            (`StereoFrontend._swept`): each is carried into the other image as the circle
+            its cone makes at the distances of ``sweep_range_m`` (both circular sections),
+            in steps of ``sweep_step_px``, and refined on edges there.
         sweep_range_m: nearest and farthest ring distance the sweep covers [m].
         sweep_step_px: the sweep's step along the epipolar line [px] (below the refinement's
             edge search half-width, so that no disparity falls between two steps).
@@ -734,31 +736,21 @@ class StereoFrontend:
         imgs: dict[str, PreparedImage],
     ) -> tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]:
         """The ring when one camera's acquisition found candidates and the other none: each
-        candidate (at most three, largest first) carried into the other image along the
-        epipolar line of its centre, through the disparities of ``sweep_range_m`` in steps of
-        ``sweep_step_px`` (its shape kept, its size scaled by the focal lengths), and refined
-        on edges at every step; per candidate the consistent pair with the smallest RMS, and
-        of those the one `_pair`'s rule takes (the largest not shown to lie behind the
-        ring's front). Nothing when no pair is consistent."""
+        candidate (at most three, largest first) carried into the other image as the circle
+        its cone makes at the distances of ``sweep_range_m`` (`_sweep_images`: both circular
+        sections, the image's centre moving along the epipolar line in steps of
+        ``sweep_step_px``), and refined on edges at every step; per candidate the consistent
+        pair with the smallest RMS, and of those the one `_pair`'s rule takes (the largest
+        not shown to lie behind the ring's front). Nothing when no pair is consistent."""
         found: list[tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]] = []
         for src, dst in (("left", "right"), ("right", "left")):
             if options.get(dst) or not options.get(src):
                 continue
             image_s = self.rings[dst].smoothed_for_edges(imgs[dst])
-            scale = float(
-                self.rig.intrinsics(Camera(dst))[0, 0] / self.rig.intrinsics(Camera(src))[0, 0]
-            )
             for cand, pol in options[src][:3]:
                 best: tuple[float, list[Circle3D], dict[str, tuple[EllipseObservation, int]]]
                 best = (math.inf, [], {})
-                for centre in self._epipolar_steps(Camera(src), cand.center_px):
-                    e = Ellipse(
-                        cx=float(centre[0]),
-                        cy=float(centre[1]),
-                        a=float(cand.axes_px[0]) * scale,
-                        b=float(cand.axes_px[1]) * scale,
-                        theta=float(cand.angle_rad),
-                    )
+                for e in self._sweep_images(Camera(src), cand):
                     other = self.rings[dst].refine_at(imgs[dst], e, pol, image_s)
                     if other is None:
                         continue
@@ -792,22 +784,44 @@ class StereoFrontend:
         k = 0 if behind is None else front_choice([f[0][0] for f in found], behind)
         return found[k][0], found[k][1]
 
-    def _epipolar_steps(self, src: Camera, pixel: np.ndarray) -> np.ndarray:
-        """Where a point seen at ``pixel`` in camera ``src`` falls in the other camera at the
-        distances of ``sweep_range_m``, in steps of ``sweep_step_px`` (equal steps of
-        inverse distance are equal steps of disparity), (M, 2)."""
+    def _sweep_images(self, src: Camera, cand: EllipseObservation) -> list[Ellipse]:
+        """The images in the other camera of the circles that ``cand``'s cone makes at the
+        distances of ``sweep_range_m``, for both circular sections, in steps that move the
+        image's centre by ``sweep_step_px``: a tilted ring seen close has a different shape
+        in each camera (tuning seed 12, 3 m: semi-minor axes 62 and 75 px), which the
+        candidate's own shape shifted along the epipolar line would miss."""
         cfg = self.config.stereo_ring
-        other = Camera.RIGHT if src is Camera.LEFT else Camera.LEFT
-        centre, rays = self.rig.rays(src, pixel)
-        ray = rays[0] / np.linalg.norm(rays[0])
-
-        def image(z: np.ndarray) -> np.ndarray:
-            return self.rig.project_into(other, centre + z[:, None] * ray)
-
+        dst = Camera.RIGHT if src is Camera.LEFT else Camera.LEFT
+        K_src, K_dst = self.rig.intrinsics(src), self.rig.intrinsics(dst)
+        left_from_src = self.rig.cam_from_left(src).inverse()
+        dst_from_left = self.rig.cam_from_left(dst)
         near, far = cfg.sweep_range_m
-        ends = image(np.array([near, far]))
-        n = max(2, math.ceil(float(np.linalg.norm(ends[0] - ends[1])) / cfg.sweep_step_px) + 1)
-        return image(1.0 / np.linspace(1.0 / far, 1.0 / near, n))
+        out: list[Ellipse] = []
+        try:
+            sections = cone_circle_candidates(K_src, cand.conic)
+        except GeometryFailure:
+            return out
+        for n, d in sections:
+            try:
+                per_radius = circle_scale(K_src, cand.conic, n, d)
+            except GeometryFailure:
+                continue
+            normal = left_from_src.R @ n
+            ends = self.rig.project_into(dst, left_from_src.apply(np.outer([near, far], d)))
+            steps = max(
+                2, math.ceil(float(np.linalg.norm(ends[0] - ends[1])) / cfg.sweep_step_px) + 1
+            )
+            for z in 1.0 / np.linspace(1.0 / far, 1.0 / near, steps):
+                centre = left_from_src.apply((z * d)[None])[0]
+                try:
+                    out.append(
+                        conic_to_ellipse(
+                            circle_conic(K_dst, dst_from_left, centre, normal, z / per_radius)
+                        )
+                    )
+                except (ConicError, ValueError, np.linalg.LinAlgError):
+                    continue
+        return out
 
     def _radius_prior(self) -> tuple[float, float] | None:
         known = self.config.stereo_ring.known_ring
