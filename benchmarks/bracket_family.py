@@ -38,9 +38,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import multiprocessing
 import sys
 from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -105,6 +109,17 @@ def per_seq_from_campaign(
     return [(s, score_from_json(by_seed[s]["bracket.score"])) for s in seeds]
 
 
+def member(seed: int, root: Path, frames: int, size: tuple[int, int]) -> dict[str, Any]:
+    """One member scored (`score_sequence`), rendered first if its folder has no frames."""
+    seq = root / f"seed-{seed}"
+    if not (seq / "frames.csv").is_file():
+        print(f"rendering seed {seed}", flush=True)
+        render_bracket_sequence(seed, seq, frames=frames, size=size, overwrite=True)
+    res = score_sequence(seq, root / f"run-{seed}")
+    print(seed, res["summary"], flush=True)
+    return res
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--split", choices=("tuning", "validation"), required=True)
@@ -123,22 +138,29 @@ def main(argv: list[str] | None = None) -> int:
         help="score the seeds from a campaign's results.parquet (benchmarks/campaigns/"
         "bracket_family.yaml, same frames and size) instead of running them here",
     )
+    ap.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="members scored at once, each in its own process (results do not depend on it; "
+        "the page's CPU per frame, measured per member, does on a loaded machine)",
+    )
     args = ap.parse_args(argv)
+    if args.jobs < 1:
+        ap.error(f"--jobs {args.jobs}: must be >= 1")
     w, h = (int(x) for x in args.size.split("x"))
     split = list(TUNING_SEEDS if args.split == "tuning" else VALIDATION_SEEDS)
     seeds = split[args.first : args.first + args.seeds]
     if args.from_campaign is not None:
         per_seq = per_seq_from_campaign(args.from_campaign, seeds, args.frames, f"{w}x{h}")
     else:
-        per_seq = []
-        for seed in seeds:
-            seq = args.root / f"seed-{seed}"
-            if not (seq / "frames.csv").is_file():
-                print(f"rendering seed {seed}", flush=True)
-                render_bracket_sequence(seed, seq, frames=args.frames, size=(w, h), overwrite=True)
-            res = score_sequence(seq, args.root / f"run-{seed}")
-            per_seq.append((seed, res))
-            print(seed, res["summary"], flush=True)
+        job = partial(member, root=args.root, frames=args.frames, size=(w, h))
+        if args.jobs == 1:
+            per_seq = [(seed, job(seed)) for seed in seeds]
+        else:  # fresh interpreters: no state inherited between members
+            ctx = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx) as pool:
+                per_seq = list(zip(seeds, pool.map(job, seeds), strict=True))
 
     all_rows = [r for _, res in per_seq for r in res["rows"]]
     near = [r for r in all_rows if r["range_m"] < MAX_RANGE_M]
