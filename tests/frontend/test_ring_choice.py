@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -221,12 +222,12 @@ def test_outer_rim_that_one_camera_misses_is_carried_from_the_other() -> None:
     assert abs(_stereo_ring(left, right, off).radius_m - 0.25) < 0.002
 
 
-def test_sweep_finds_the_ring_in_the_camera_whose_detector_found_nothing() -> None:
-    """Drawn stereo images of the ring of the test above (4 m): with the left camera's
-    candidates discarded, the sweep along the epipolar lines of the right camera's
-    candidates finds the left ring and the pair makes the rim's circle (radius within 2 mm,
-    centre within 1 cm); with no candidate in either camera there is nothing to sweep."""
-    rim = _circle(np.array([0.15, 0.05, 4.0]), 25.0, 0.30, 0.0)
+def _swept_from(
+    rim: Circle3D, found_in: str
+) -> tuple[StereoFrontend, dict[str, Any], tuple[list[Circle3D], dict[str, Any]]]:
+    """Drawn stereo images of ``rim`` (face to 0.25 m); the frontend, its prepared images,
+    and what `StereoFrontend._swept` finds from camera ``found_in``'s candidates alone (the
+    other camera's discarded)."""
     images = {
         "left": _draw_patch(Rigid3.identity(), rim, 0.25, 0.0),
         "right": _draw_patch(RIGHT_FROM_LEFT, rim, 0.25, 0.0),
@@ -234,9 +235,18 @@ def test_sweep_finds_the_ring_in_the_camera_whose_detector_found_nothing() -> No
     cam = PinholeCamera(width=W, height=H, K=K)
     fe = StereoFrontend(Calibration(left=cam, right=cam, right_from_left=RIGHT_FROM_LEFT))
     imgs = {c: fe.undistort[c](images[c]) for c in images}
-    options = {"left": [], "right": fe.rings["right"].acquire(imgs["right"])}
-    assert options["right"]
-    circles, pair = fe._swept(options, imgs)
+    options = {c: fe.rings[c].acquire(imgs[c]) if c == found_in else [] for c in images}
+    assert options[found_in]
+    return fe, imgs, fe._swept(options, imgs)
+
+
+def test_sweep_finds_the_ring_in_the_camera_whose_detector_found_nothing() -> None:
+    """Drawn stereo images of the ring of the test above (4 m): with the left camera's
+    candidates discarded, the sweep along the epipolar lines of the right camera's
+    candidates finds the left ring and the pair makes the rim's circle (radius within 2 mm,
+    centre within 1 cm); with no candidate in either camera there is nothing to sweep."""
+    rim = _circle(np.array([0.15, 0.05, 4.0]), 25.0, 0.30, 0.0)
+    fe, imgs, (circles, pair) = _swept_from(rim, "right")
     assert circles, "the sweep found no consistent pair"
     outer = [c for c in circles if abs(c.radius - 0.30) < 0.002]
     assert outer, [c.radius for c in circles]
@@ -259,16 +269,7 @@ def test_sweep_carries_the_circle_not_the_shape_of_a_close_tilted_ring() -> None
         for name, cam in (("left", Camera.LEFT), ("right", Camera.RIGHT))
     }
     assert abs(minor["left"] - minor["right"]) > 20.0, minor
-    images = {
-        "left": _draw_patch(Rigid3.identity(), rim, 0.25, 0.0),
-        "right": _draw_patch(RIGHT_FROM_LEFT, rim, 0.25, 0.0),
-    }
-    cam = PinholeCamera(width=W, height=H, K=K)
-    fe = StereoFrontend(Calibration(left=cam, right=cam, right_from_left=RIGHT_FROM_LEFT))
-    imgs = {c: fe.undistort[c](images[c]) for c in images}
-    options = {"left": fe.rings["left"].acquire(imgs["left"]), "right": []}
-    assert options["left"]
-    circles, _ = fe._swept(options, imgs)
+    _, _, (circles, _) = _swept_from(rim, "left")
     outer = [c for c in circles if abs(c.radius - 0.30) < 0.002]
     assert outer, [c.radius for c in circles]
     assert float(np.linalg.norm(outer[0].center - rim.center)) < 0.01
