@@ -35,7 +35,7 @@ import numpy as np
 from satpose.datasets.errors import SatposeError
 from satpose.datasets.geometry import Rigid3, matrix_to_rotvec, rotvec_to_matrix
 from satpose.datasets.sequence import Calibration, Frame
-from satpose.frontend.conics import ConicError, Ellipse, conic_to_ellipse
+from satpose.frontend.conics import ConicError, Ellipse
 from satpose.frontend.edges import smoothed
 from satpose.frontend.ellipses import DetectedEllipse, EllipseDetectorConfig, detect_ellipses
 from satpose.frontend.landmarks import LandmarkConfig, LandmarkTracker
@@ -65,14 +65,18 @@ from satpose.frontend.rim import (
     projected_observation,
 )
 from satpose.frontend.ring import Detector, RingConfig, RingTracker, contrast_scale
-from satpose.frontend.ring_choice import coplanar_outer, front_choice, transferred_ellipse
+from satpose.frontend.ring_choice import (
+    coplanar_outer,
+    front_choice,
+    section_image,
+    transferred_ellipse,
+)
 from satpose.frontend.ring_depth import FrontArcsConfig, fit_front_arcs
 from satpose.frontend.ring_outline import OutlineConfig, OutlineFit, fit_ring_outline
 from satpose.frontend.stereo import (
     Circle3D,
     GeometryFailure,
     StereoRig,
-    circle_conic,
     circle_rms,
     circle_scale,
     cone_circle_candidates,
@@ -792,9 +796,8 @@ class StereoFrontend:
         candidate's own shape shifted along the epipolar line would miss."""
         cfg = self.config.stereo_ring
         dst = Camera.RIGHT if src is Camera.LEFT else Camera.LEFT
-        K_src, K_dst = self.rig.intrinsics(src), self.rig.intrinsics(dst)
+        K_src = self.rig.intrinsics(src)
         left_from_src = self.rig.cam_from_left(src).inverse()
-        dst_from_left = self.rig.cam_from_left(dst)
         near, far = cfg.sweep_range_m
         out: list[Ellipse] = []
         try:
@@ -806,20 +809,14 @@ class StereoFrontend:
                 per_radius = circle_scale(K_src, cand.conic, n, d)
             except GeometryFailure:
                 continue
-            normal = left_from_src.R @ n
             ends = self.rig.project_into(dst, left_from_src.apply(np.outer([near, far], d)))
             steps = max(
                 2, math.ceil(float(np.linalg.norm(ends[0] - ends[1])) / cfg.sweep_step_px) + 1
             )
             for z in 1.0 / np.linspace(1.0 / far, 1.0 / near, steps):
-                centre = left_from_src.apply((z * d)[None])[0]
                 try:
-                    out.append(
-                        conic_to_ellipse(
-                            circle_conic(K_dst, dst_from_left, centre, normal, z / per_radius)
-                        )
-                    )
-                except (ConicError, ValueError, np.linalg.LinAlgError):
+                    out.append(section_image(self.rig, src, n, d, per_radius, float(z)))
+                except GeometryFailure:
                     continue
         return out
 

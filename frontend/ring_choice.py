@@ -32,7 +32,6 @@ import math
 
 import numpy as np
 
-from satpose.datasets.geometry import Rigid3
 from satpose.frontend.conics import ConicError, Ellipse, conic_to_ellipse
 from satpose.frontend.measurements import Camera
 from satpose.frontend.stereo import (
@@ -100,6 +99,38 @@ def front_choice(circles: list[Circle3D], k_sigma: float) -> int:
     return len(circles) - 1
 
 
+def section_image(
+    rig: StereoRig,
+    source: Camera,
+    normal: np.ndarray,
+    direction: np.ndarray,
+    per_radius: float,
+    distance: float,
+) -> Ellipse:
+    """The image in the other camera of the circle that a circular section of ``source``'s
+    cone makes at ``distance``: centre ``distance * direction`` and normal ``normal`` in
+    ``source``'s frame, radius ``distance / per_radius`` (`circle_scale`).
+
+    Raises:
+        GeometryFailure: the image is not an ellipse (the circle is edge-on or behind).
+    """
+    dst = Camera.RIGHT if source is Camera.LEFT else Camera.LEFT
+    left_from_src = rig.cam_from_left(source).inverse()
+    centre = left_from_src.apply((distance * np.asarray(direction, float))[None])[0]
+    try:
+        return conic_to_ellipse(
+            circle_conic(
+                rig.intrinsics(dst),
+                rig.cam_from_left(dst),
+                centre,
+                left_from_src.R @ np.asarray(normal, float),
+                distance / per_radius,
+            )
+        )
+    except (ConicError, ValueError, np.linalg.LinAlgError) as exc:
+        raise GeometryFailure(f"transferred ring candidate is not an ellipse ({exc})") from None
+
+
 def transferred_ellipse(
     rig: StereoRig, conic: np.ndarray, source: Camera, reference: Circle3D
 ) -> Ellipse:
@@ -110,26 +141,12 @@ def transferred_ellipse(
     Raises:
         GeometryFailure: the cone has no circular section, or the image is not an ellipse.
     """
-    T = rig.right_from_left
-    if source is Camera.LEFT:
-        K_src, c_ref, n_ref = rig.K_left, reference.center, reference.normal
-    else:
-        K_src, c_ref, n_ref = (
-            rig.K_right,
-            T.apply(reference.center[None])[0],
-            T.R @ reference.normal,
-        )
+    src_from_left = rig.cam_from_left(source)
+    c_ref = src_from_left.apply(reference.center[None])[0]
+    n_ref = src_from_left.R @ reference.normal
+    K_src = rig.intrinsics(source)
     sections = cone_circle_candidates(K_src, conic)
     n, d = min(sections, key=lambda s: -abs(float(s[0] @ n_ref)))
-    dist = float(np.linalg.norm(c_ref))
-    radius = dist / circle_scale(K_src, conic, n, d)
-    center = dist * d
-    if source is Camera.LEFT:
-        K_dst, dst_from_left = rig.K_right, T
-    else:  # from the right camera's frame back to the left's
-        center, n = T.R.T @ (center - T.t), T.R.T @ n
-        K_dst, dst_from_left = rig.K_left, Rigid3.identity()
-    try:
-        return conic_to_ellipse(circle_conic(K_dst, dst_from_left, center, n, radius))
-    except (ConicError, ValueError, np.linalg.LinAlgError) as exc:
-        raise GeometryFailure(f"transferred ring candidate is not an ellipse ({exc})") from None
+    return section_image(
+        rig, source, n, d, circle_scale(K_src, conic, n, d), float(np.linalg.norm(c_ref))
+    )
