@@ -9,6 +9,7 @@ from dataclasses import astuple, replace
 
 import cv2
 import numpy as np
+import pytest
 
 from satpose.datasets.geometry import Rigid3, rotvec_to_matrix
 from satpose.frontend import bracket_lines as bl
@@ -254,10 +255,12 @@ def segment_pair(length_px: float, angle_deg: float, sep_px: float = 16.0) -> np
     return np.array([first, second])
 
 
-def pairs_of(seg: np.ndarray, cfg: StrutDetectorConfig, end_px: float) -> list[tuple[int, int]]:
+def pairs_of(
+    seg: np.ndarray, cfg: StrutDetectorConfig, end_px: float, taper: float = 0.0
+) -> list[tuple[int, int]]:
     p, q = seg[:, :2], seg[:, 2:]
     length = np.linalg.norm(q - p, axis=1)
-    return bl._parallel_pairs(p, q, (q - p) / length[:, None], length, cfg, end_px)
+    return bl._parallel_pairs(p, q, (q - p) / length[:, None], length, cfg, end_px, taper)
 
 
 def test_short_edges_pair_at_the_angle_their_length_allows() -> None:
@@ -274,6 +277,25 @@ def test_short_edges_pair_at_the_angle_their_length_allows() -> None:
     assert pairs_of(segment_pair(100.0, 4.5), cfg, end) == []
     assert pairs_of(segment_pair(100.0, 2.5), cfg, 0.0) == [(0, 1)]
     assert pairs_of(segment_pair(100.0, 2.5), cfg, end) == [(0, 1)]
+
+
+def test_short_edges_of_a_wide_bar_may_converge_by_a_fraction_of_its_width() -> None:
+    """In the short-edge pass two edges also pair within ``atan(short_taper * sep / l)``: a
+    close strut's silhouette edges converge toward its axis's vanishing point by a fraction
+    of its width (tuning seed 70: a stub 22 px wide, 75 px edges 3.4 deg apart). 24 px apart
+    and 75 px long: 0.3 x 24 = 7.2 px, 5.5 deg; 4 px alone allow 3.05 deg. A thin bar (6 px
+    apart, 1.8 px) keeps the fixed 4 px. Exact segments: the tolerance is the whole test."""
+    cfg = StrutDetectorConfig()
+    end, taper = cfg.short_edge_px, cfg.short_taper
+    wide = segment_pair(75.0, 3.4, sep_px=24.0)
+    assert pairs_of(wide, cfg, end) == []
+    assert pairs_of(wide, cfg, end, taper) == [(0, 1)]
+    assert pairs_of(segment_pair(75.0, 5.0, sep_px=24.0), cfg, end, taper) == [(0, 1)]
+    assert pairs_of(segment_pair(75.0, 6.0, sep_px=24.0), cfg, end, taper) == []
+    thin = segment_pair(75.0, 3.4, sep_px=6.0)
+    assert pairs_of(thin, cfg, end, taper) == []
+    # the long struts' pass (no end offset) ignores the taper
+    assert pairs_of(wide, cfg, 0.0, taper) == []
 
 
 def wedge_image(length_px: float, angle_deg: float, seed: int) -> tuple[np.ndarray, float]:
@@ -417,3 +439,60 @@ def test_exterior_stub_runs_along_the_edge_away_from_the_triangle() -> None:
         assert out.edges is None and out.length > 39.0
     plain = replace(bar, edges=None)
     assert bl._exterior_stub(plain, inside=np.array([20.0, 60.0])) is plain
+
+
+def exact_struts(
+    pose: Rigid3, V: np.ndarray, fraction: float, factors: np.ndarray
+) -> tuple[tuple[bl.Strut, bl.Strut, bl.Strut], BracketGeometry]:
+    """The base and the two stubs as projected by ``pose``, each ``factors`` x its predicted
+    width ``f 2 r / z`` wide."""
+    ends = np.array([V[0] + fraction * (V[2] - V[0]), V[1] + fraction * (V[2] - V[1])])
+    px = project(pose, np.vstack([V[:2], ends]), K)
+    struts = []
+    for a, b in ((0, 1), (0, 2), (1, 3)):
+        d = px[b] - px[a]
+        L = float(np.linalg.norm(d))
+        struts.append(
+            bl.Strut(
+                point=px[a],
+                direction=d / L,
+                s0=0.0,
+                s1=L,
+                support_px=L,
+                residual_px=0.0,
+                width_px=1.0,
+            )
+        )
+    geo = BracketGeometry(vertices_m=V, visible_fraction=fraction)
+    pred = bl._strut_widths_predicted(pose, tuple(struts), geo, K, RADIUS_M)
+    a, b, c = (
+        replace(s, width_px=float(w * f)) for s, w, f in zip(struts, pred, factors, strict=True)
+    )
+    return (a, b, c), geo
+
+
+def test_strut_widths_count_at_most_their_spread_and_are_rejected_beyond_the_gate() -> None:
+    """The three widths' log ratios to ``f 2 r / z`` about their mean: weighed with sigma
+    ``max_width_spread / 2`` up to ``max_width_spread``, beyond that no more (a side-lit
+    stub shows a different fraction of its silhouette: tuning seed 74, 6 of 14 px), and
+    rejected beyond ``width_spread_gate``. Exact struts of a posed bracket; the widths are
+    the test's only input."""
+    cfg = replace(StrutDetectorConfig(), strut_radius_m=RADIUS_M, use_taper=False)
+    pose = view(V_SKEW, 30.0, 10.0, 1.5, 0.3)
+
+    def chi2(factors: list[float]) -> float:
+        struts, geo = exact_struts(pose, V_SKEW, 0.3, np.array(factors))
+        return bl.width_chi2(struts, pose, geo, K, cfg)
+
+    sigma = cfg.max_width_spread / 2
+    assert chi2([0.7, 0.7, 0.7]) == pytest.approx(0.0, abs=1e-9)
+    # within the spread: the plain quadratic of the deviations from the mean
+    lr = np.log([0.8, 0.7, 0.6])
+    assert chi2([0.8, 0.7, 0.6]) == pytest.approx(float(np.sum(((lr - lr.mean()) / sigma) ** 2)))
+    # a stub at half the others' fraction: log spread 0.46, each deviation counts at most 2 sigma
+    lr = np.log([0.8, 0.8, 0.4])
+    dev = np.minimum(np.abs(lr - lr.mean()), cfg.max_width_spread)
+    assert np.abs(lr - lr.mean()).max() > cfg.max_width_spread
+    assert chi2([0.8, 0.8, 0.4]) == pytest.approx(float(np.sum((dev / sigma) ** 2)))
+    # beyond the gate: one strut at 0.3 of the others' fraction (log 0.80 from the mean)
+    assert chi2([1.0, 1.0, 0.3]) == math.inf
