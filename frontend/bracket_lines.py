@@ -111,14 +111,15 @@ class StrutDetectorConfig:
             sigmas from where the known visible fraction puts them is rejected.
         width_ratio_range: measured over predicted (``f 2 r / z``) strut width allowed (edge
             detection on a shaded cylinder measures it narrower than its silhouette).
-        max_width_spread: the three struts' log width ratios differ from their mean by about
-            half this (one scale for all three; their misfit is weighed in units of half of
-            it) and count as at most this: beyond it the misfit counts no more (a truncated
-            quadratic). A bar is the part of its strut brighter than the background, and
-            with the sun to one side that is a different fraction of each strut's
-            silhouette (seen as found, true struts at their true pose on the bracket family's
-            tuning seeds 0-75: log spread above 0.35 in 11 % of the frames, 99th percentile
-            0.64; seed 74, 1.35 m: a stub lit on a 6 px sliver of its 14 px silhouette).
+        max_width_spread: each strut's log width ratio (measured over ``f 2 r / z``) is
+            weighed by its deviation from the three's mean (one scale for all three) with a
+            standard deviation of half this, and a deviation counts as at most this: beyond
+            it the misfit grows no more (a truncated quadratic). A bar is the part of its
+            strut brighter than the background, and with the sun to one side that is a
+            different fraction of each strut's silhouette (the true struts as found, at
+            their true pose, on the bracket family's tuning seeds 0-75: log spread above
+            0.35 in 11 % of the frames, 99th percentile 0.64; seed 74, 1.35 m: a stub lit
+            on a 6 px sliver of its 14 px silhouette).
         width_spread_gate: a hypothesis whose strut widths spread further than this (log
             ratio to their mean) is rejected: a factor 2 between a strut's lit fraction and
             the mean of the three.
