@@ -409,10 +409,11 @@ def _parallel_pairs(
         j = np.arange(i + 1, n)
         shorter = np.minimum(length[i], length[j])
         sep = np.abs((mid[j] - p[i]) @ normal[i])
-        if end_px > 0:
-            tol = np.maximum(max_rad, np.arctan2(np.maximum(end_px, taper * sep), shorter))
-        else:
-            tol = np.full(len(j), max_rad)
+        tol = (
+            np.maximum(max_rad, np.arctan2(np.maximum(end_px, taper * sep), shorter))
+            if end_px > 0
+            else max_rad
+        )
         ok = np.abs(u[j] @ u[i]) >= np.cos(tol)
         ok &= (sep >= config.bar_width_px[0]) & (sep <= config.bar_width_px[1])
         a = (p[j] - p[i]) @ u[i]
@@ -1583,6 +1584,21 @@ def _partial_triples(
     return out
 
 
+def _cross_profiles(
+    img: np.ndarray,
+    strut: Strut,
+    ss: np.ndarray,
+    offs: np.ndarray,
+    n: np.ndarray,
+    interpolation: int,
+) -> np.ndarray:
+    """``img`` sampled across ``strut``: one row per position ``ss`` along its centre line,
+    one column per offset ``offs`` along the unit normal ``n`` [px] (``img``'s dtype)."""
+    centre = strut.point[None, :] + ss[:, None] * strut.direction[None, :]
+    P = centre[:, None, :] + offs[None, :, None] * n[None, None, :]
+    return cv2.remap(img, P[..., 0].astype(np.float32), P[..., 1].astype(np.float32), interpolation)
+
+
 def _side_silhouette(prof: np.ndarray, noise: float) -> float:
     """How far [px] a strut's silhouette lies beyond a bar's edge, from the cross profile
     ``prof`` sampled every pixel from that edge outward; 0 when the edge is the silhouette.
@@ -1644,10 +1660,7 @@ def _silhouette_refit(img: np.ndarray, strut: Strut) -> Strut:
     ext = []
     for sign in (1.0, -1.0):
         offs = sign * (0.5 * w + np.arange(reach + 5, dtype=float))
-        P = strut.point + ts[:, None, None] * strut.direction + offs[None, :, None] * n
-        rows = cv2.remap(
-            img, P[..., 0].astype(np.float32), P[..., 1].astype(np.float32), cv2.INTER_LINEAR
-        )
+        rows = _cross_profiles(img, strut, ts, offs, n, cv2.INTER_LINEAR)
         # noise of the mean profile: the background's spread along the strut over sqrt(9)
         noise = float(np.median(np.std(rows[:, -5:], axis=0))) / 3.0
         ext.append(_side_silhouette(rows.mean(axis=0), noise))
@@ -1742,11 +1755,7 @@ def _taper_reach(
     wide = 2.0 * w + 2.5
     offs = np.arange(-wide, wide + 1e-9, 0.5)
     sub = ss[:: max(1, len(ss) // 24)]
-    centre = strut.point[None, :] + sub[:, None] * strut.direction[None, :]
-    P = centre[:, None, :] + offs[None, :, None] * n[None, None, :]
-    rows = cv2.remap(
-        blurred, P[..., 0].astype(np.float32), P[..., 1].astype(np.float32), cv2.INTER_LINEAR
-    ).astype(np.float64)
+    rows = _cross_profiles(blurred, strut, sub, offs, n, cv2.INTER_LINEAR).astype(np.float64)
     first = int(np.flatnonzero(np.abs(offs) <= reach)[0])
     inner = rows[:, np.abs(offs) <= reach]
     far: list[list[float]] = [[], []]
@@ -1790,11 +1799,7 @@ def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) 
     n = np.array([-strut.direction[1], strut.direction[0]])
     before, after = _taper_reach(blurred, strut, ss, n)
     offs = np.arange(-before, after + 1e-9, 0.25)
-    centre = strut.point[None, :] + ss[:, None] * strut.direction[None, :]
-    P = centre[:, None, :] + offs[None, :, None] * n[None, None, :]
-    rows = cv2.remap(
-        blurred, P[..., 0].astype(np.float32), P[..., 1].astype(np.float32), cv2.INTER_CUBIC
-    ).astype(np.float64)
+    rows = _cross_profiles(blurred, strut, ss, offs, n, cv2.INTER_CUBIC).astype(np.float64)
     edges = _outer_edges(rows, offs, TAPER_EDGE).T
     width = edges[1] - edges[0]
     keep = np.isfinite(width) & (width > 0.25 * w)
