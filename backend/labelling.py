@@ -33,7 +33,7 @@ gtsam stays inside the backend; the candidates come in as frontend `PoseMeasurem
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import gtsam
@@ -385,12 +385,17 @@ class SequenceLabeller:
         rng = float(np.linalg.norm(pred.apply(self.centre[None])[0]))
         return ang <= self.config.gate_deg and dist <= self.config.gate_rel * rng + 0.02
 
-    def _in_chi2_gate(self, cand: PoseMeasurement, pred: Rigid3, cov: np.ndarray) -> bool:
-        """Whether ``cand`` is within ``gate_chi2`` of the prediction, with the candidate's
-        covariance plus ``cov`` (the track's last pose's and the motion's over the gap)."""
-        d = local_error(pred, cand.left_cam_from_target)
-        S = cand.covariance + cov
+    def _in_chi2_gate(self, pose: Rigid3, pred: Rigid3, S: np.ndarray) -> bool:
+        """Whether ``pose`` is within ``gate_chi2`` of the prediction ``pred``, their
+        difference having covariance ``S``."""
+        d = local_error(pred, pose)
         return float(d @ np.linalg.solve(S, d)) <= self.config.gate_chi2
+
+    def _prediction_covariance(self, tr: _Track, f: int, k: int) -> np.ndarray:
+        """The spread of the track's prediction at frame ``k`` from its frame ``f``: that
+        frame's candidate covariance plus the motion's over the gap."""
+        last = self.candidates[f][tr.picks[f]].pose.covariance
+        return last + process_covariance(self.t_s[k] - self.t_s[f], self.config.motion)[:6, :6]
 
     def _image_gate(self, image: ImageResidual, pred: Rigid3, cov: np.ndarray) -> bool:
         """Whether the predicted pose (covariance ``cov``) explains the measured quantities
@@ -423,13 +428,12 @@ class SequenceLabeller:
                 new.append(tr)  # too long without a candidate: kept as it is, not continued
                 continue
             pred = self._prediction(tr, k)
-            last = self.candidates[tr.last][tr.picks[tr.last]].pose.covariance
-            Q = process_covariance(self.t_s[k] - self.t_s[tr.last], cfg.motion)[:6, :6]
+            spread = self._prediction_covariance(tr, tr.last, k)
             hit = [
                 j
                 for j, c in enumerate(candidates)
                 if self._in_gate(c.pose.left_cam_from_target, pred)
-                or self._in_chi2_gate(c.pose, pred, last + Q)
+                or self._in_chi2_gate(c.pose.left_cam_from_target, pred, c.pose.covariance + spread)
             ]
             for j in hit:
                 picks = {**tr.picks, k: j}
@@ -462,7 +466,7 @@ class SequenceLabeller:
                 for g in sorted({c.group for c in candidates if c.group >= 0}):
                     j = next(i for i, c in enumerate(candidates) if c.group == g)
                     image = candidates[j].image
-                    if image is not None and self._image_gate(image, pred, last + Q):
+                    if image is not None and self._image_gate(image, pred, spread):
                         picks = {**tr.picks, k: j}
                         fit = self._fit(picks, tr, pred)
                         new.append(_Track(picks, fit, self._image_cost(picks), 0))
@@ -667,14 +671,13 @@ class SequenceLabeller:
 
     def _within_prediction(self, tr: _Track, k: int, pose: Rigid3) -> bool:
         """Whether ``pose`` is within ``gate_chi2`` of the track's prediction at frame ``k``
-        (inside its span, not one of its frames) from its previous frame: that frame's
-        candidate covariance plus the motion's over the gap, as when a track is continued."""
+        (inside its span, not one of its frames) from its previous frame, with that
+        prediction's spread (`_prediction_covariance`, the gate a track is continued with,
+        without a candidate's own covariance)."""
         prev = max(f for f in tr.picks if f < k)
         pred = self._pose_at(tr, k)
         assert pred is not None
-        last = self.candidates[prev][tr.picks[prev]].pose
-        Q = process_covariance(self.t_s[k] - self.t_s[prev], self.config.motion)[:6, :6]
-        return self._in_chi2_gate(replace(last, left_cam_from_target=pose), pred, Q)
+        return self._in_chi2_gate(pose, pred, self._prediction_covariance(tr, prev, k))
 
     def _decide_frame(self, k: int) -> Decision:
         n = len(self.tracks)

@@ -426,13 +426,13 @@ def _gaussian_run(offsets_m: dict[int, float]) -> list[int | None]:
 
 def test_a_copy_that_skips_a_frame_is_no_rival_within_its_prediction_noise() -> None:
     """One candidate per frame, so one labelling. Frame 9's is 80 mm aside (7 % of its
-    1.1 m range, 2.8 sigma of the motion's noise over 1 s): the best track leaves it out, and a
-    copy through frame 9 predicts frame 10 beyond the rival distance from its only (exact)
-    candidate. That copy skips frame 10 and is the same hypothesis, so it is no rival there:
-    every frame is reported (before, frame 10 was refused with a log-likelihood ratio of
-    -5.1). Moved 200 mm (18 % of the range; the motion's position noise over 1 s is 28.9 mm
-    per axis), frame 9's candidate is outside the hypothesis' own prediction and stays
-    refused. Noise-free: exact picks."""
+    1.1 m range, 2.8 sigma of the motion's noise over 1 s): the best track takes frame 9 and
+    leaves out frame 10 (exact), where its prediction lies beyond the rival distance from
+    the answer of the track through every frame. It is the same hypothesis and skips frame
+    10, so it is no rival there: every frame is reported (before, frame 10 was refused with
+    a log-likelihood ratio of -5.1). Moved 200 mm (18 % of the range; the motion's
+    position noise over 1 s is 28.9 mm per axis), frame 9's candidate is outside the
+    hypothesis' own prediction and stays refused. Noise-free: exact picks."""
     assert _gaussian_run({9: 0.08}) == [0] * 12
     picks = _gaussian_run({9: 0.2})
     assert picks[9] is None and picks[:9] == [0] * 9 and picks[10:] == [0, 0], picks
