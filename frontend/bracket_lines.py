@@ -128,8 +128,10 @@ class StrutDetectorConfig:
             the blur change a little along a strut): the spread of measured minus true tapers
             on the bracket family's tuning seeds (docs/bracket.md, "Strut taper").
         max_taper_chi: a strut's taper misfit counts as at most this many sigmas (a truncated
-            square: an outlying measurement, e.g. a cell line along a strut, cannot veto the
-            true pose; what tells the poses apart is the sum over struts and frames).
+            square, in the single frame's verification and in the fits of
+            `PartialImageModel`: an outlying measurement, e.g. a cell line along a strut,
+            cannot veto the true pose; what tells the poses apart is the sum over struts and
+            frames).
         taper_min_width_px: a strut narrower than this [px] has its taper ignored: there the
             blur merges its two edges and the measured taper is compressed (half the true one
             at 5 px on the family's tuning seeds).
@@ -1025,7 +1027,9 @@ class PartialImageModel:
     `partial_image_quantities`, noise ``sigma_px`` per vertex coordinate, ``sigma_dir_rad``
     per strut direction and the verification's ``end_sigma_px + end_sigma_rel * length`` per
     stub length; then the struts' tapers (`measure_taper`), ``(taper - predicted(T)) /
-    hypot(taper_sigma, taper_floor)``. ``residual_and_jacobian`` is what a smoother needs to
+    hypot(taper_sigma, taper_floor)`` clipped at ``taper_cap`` (``max_taper_chi``: the
+    truncated square of the single frame's verification, `_truncated_whitened`).
+    ``residual_and_jacobian`` is what a smoother needs to
     weigh the image itself (not a Gaussian approximation of the pose) against the motion
     (`satpose.backend.labelling`): near a double P3P root the likelihood of the pose is far
     from Gaussian, and the tapers are what tells those roots apart."""
@@ -1036,6 +1040,7 @@ class PartialImageModel:
     K: np.ndarray
     fraction: float
     tapers: tuple[TaperMeasurement, ...] = ()
+    taper_cap: float = 3.0
 
     @staticmethod
     def of(
@@ -1066,7 +1071,13 @@ class PartialImageModel:
                         )
                     )
         return PartialImageModel(
-            zz, sig, np.asarray(vertices, float), np.asarray(K), fraction, tuple(tapers)
+            zz,
+            sig,
+            np.asarray(vertices, float),
+            np.asarray(K),
+            fraction,
+            tuple(tapers),
+            config.max_taper_chi,
         )
 
     @property
@@ -1090,7 +1101,7 @@ class PartialImageModel:
         )
 
     def _taper_residuals(self, P: np.ndarray) -> np.ndarray:
-        """Whitened (Huber) taper residuals (k, m) for the posed vertices ``P`` (k, 3, 3) of
+        """Whitened (truncated) taper residuals (k, m) for the posed vertices ``P`` (k, 3, 3) of
         k poses; a large prediction (1e3) where an axis end lies behind the camera or the
         camera inside the cylinder, so a fit is pushed back."""
         i0, i1, radii, x, value, sigma, K_inv = self._taper_arrays
@@ -1098,7 +1109,7 @@ class PartialImageModel:
         ok = (P[:, i0, 2] > 0) & (P[:, i1, 2] > 0) & np.all(w > 0, axis=-1)
         w = np.where(ok[..., None], w, 1.0)
         pred = np.where(ok, np.log(w[..., 1] / w[..., 0]), 1e3)
-        return _huber_whitened((value - pred) / sigma)
+        return _truncated_whitened((value - pred) / sigma, self.taper_cap)
 
     def residual(self, pose: Rigid3) -> np.ndarray:
         """Whitened ``(z - h(pose)) / sigma``, angles wrapped, then the tapers'."""
@@ -1164,19 +1175,16 @@ class PartialImageModel:
         return np.concatenate([r, rt]), np.vstack([Jq, Jt])
 
 
-# a strut's taper misfit beyond this many sigmas costs linearly, not quadratically: the
-# measured tapers have heavier tails than a Gaussian (a cell line along a strut, a crossing
-# strut's shadow; docs/bracket.md, "Strut taper")
-TAPER_HUBER = 2.0
-
-
-def _huber_whitened(r: np.ndarray) -> np.ndarray:
-    """Whitened residuals ``r`` as ``sign(r) sqrt(2 rho(r))`` with Huber's ``rho`` at
-    ``TAPER_HUBER``: the same beyond nothing within it, a linear cost beyond (what a least
-    squares fit of these residuals minimises is then Huber's loss)."""
-    k = TAPER_HUBER
-    a = np.abs(r)
-    return np.where(a <= k, r, np.sign(r) * np.sqrt(np.maximum(2.0 * k * a - k * k, 0.0)))
+def _truncated_whitened(r: np.ndarray, cap: float) -> np.ndarray:
+    """Whitened residuals ``r`` clipped at ``+-cap``: a least-squares fit of them minimises
+    the truncated square ``min(r^2, cap^2)``, the cost the single frame's verification gives
+    a taper (`_verify`). The measured tapers' tails are far heavier than a Gaussian's (a
+    side-lit strut's lit part over a mottled panel, a cell line along a strut: 12-15 sigmas
+    at the truth on tuning seed 29's closest frames), and a taper beyond a few sigmas is an
+    outlier, not evidence in proportion to its size: under Huber's linear cost three such
+    tapers (about 75 of half chi-square at the truth) pulled the frame's fit 6 deg off and
+    the true track could not take those frames (docs/bracket.md, "Strut taper")."""
+    return np.clip(r, -cap, cap)
 
 
 # central-difference steps of the right perturbation ``T Exp(xi)`` for the tapers' Jacobian:
