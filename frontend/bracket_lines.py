@@ -917,7 +917,7 @@ def _verify(
             if not math.isfinite(pred_t):
                 return math.inf, "a strut's axis behind the camera"
             e = (strut.taper - pred_t) / math.hypot(strut.taper_sigma, cfg.taper_floor)
-            cost += min(e * e, cfg.max_taper_chi**2)
+            cost += float(_truncated_whitened(np.asarray(e), cfg.max_taper_chi) ** 2)
     return cost, ""
 
 
@@ -1040,7 +1040,7 @@ class PartialImageModel:
     K: np.ndarray
     fraction: float
     tapers: tuple[TaperMeasurement, ...] = ()
-    taper_cap: float = 3.0
+    taper_cap: float = StrutDetectorConfig.max_taper_chi
 
     @staticmethod
     def of(
