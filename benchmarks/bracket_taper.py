@@ -11,7 +11,7 @@ error by strut width (median and 90th / 95th percentile of its size, mean, robus
 and the median ratio measured / true where the true taper exceeds 0.05: below 1 the
 measurement compresses it), and, for the struts that `_verify` weighs (at least
 ``taper_min_width_px`` wide), the errors over their stated sigma with the noise floor
-``taper_floor`` (and neighbouring floors): what sets the floor and the Huber threshold
+``taper_floor`` (and neighbouring floors): what sets the floor and the cap ``max_taper_chi``
 (docs/bracket.md, "Strut taper").
 
 Only tuning seeds: this is where the floor was chosen. Usage::
@@ -146,10 +146,10 @@ def main(argv: list[str] | None = None) -> int:
         f"## The weighed struts (after the refit, >= {cfg.taper_min_width_px:g} px wide: "
         f"{len(S)}): error over hypot(stated sigma, floor)",
         "",
-        f"Median stated sigma (the fit's own): {np.median(S[:, 5]):.4f}. The default floor "
-        f"is `taper_floor` = {cfg.taper_floor:g}; beyond 2 sigmas the misfit costs linearly "
-        "(Huber): the tails below are heavier than a Gaussian's (4.6 % beyond 2, 0.27 % "
-        "beyond 3).",
+        f"Median stated sigma (the fit's own, `measure_taper`): {np.median(S[:, 5]):.4f}. "
+        f"The default floor is `taper_floor` = {cfg.taper_floor:g}; a misfit counts as at "
+        f"most `max_taper_chi` = {cfg.max_taper_chi:g} sigmas (a truncated square): a "
+        "Gaussian has 4.6 % beyond 2 sigmas and 0.27 % beyond 3.",
         "",
         "| floor | rms | robust sd | beyond 2 | beyond 3 |",
         "|---|---|---|---|---|",

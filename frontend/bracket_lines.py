@@ -1709,6 +1709,71 @@ def _outer_edges(rows: np.ndarray, offs: np.ndarray, rel: float) -> np.ndarray:
     return out
 
 
+def _outer_edge_lines(
+    rows: np.ndarray, offs: np.ndarray, rel: float, max_drift: float
+) -> np.ndarray:
+    """Per cross profile (rows along a strut x samples at the evenly spaced ``offs``), each
+    side's silhouette (n, 2; NaN where a profile has none near it), chosen *once for the
+    whole strut*: the outermost maximum of the mean gradient magnitude over all profiles
+    that reaches ``rel`` of its steepest; on every profile the gradient peak nearest to it
+    within ``max_drift / 2 + 1`` px (the edge's drift along the strut: its taper and the centre
+    line's tilt); a robust straight line (Theil-Sen) through those; and on every profile the
+    gradient peak within 1 px of that line (sub-sample, by a parabola).
+
+    A profile-by-profile outermost peak (`_outer_edges`) is unstable where the limb has no
+    step: a Lambertian strut lit from near the view direction fades into a panel of its
+    limb's brightness, and the outermost peak of such a dome is a ripple of the panel's
+    texture on its foot on some profiles and the flank's on others, so the width jumps
+    by a third along the strut (bracket family tuning seed 29: a base 15-16 px wide
+    measured 14.6 px over its first half and 11 px over its second, taper -0.28 for +0.09).
+    The mean over the strut keeps a silhouette step that runs its whole length, however
+    faint, and averages a texture's ripples away."""
+    step = float(offs[1] - offs[0])
+    g = np.abs(gaussian_filter1d(rows.astype(np.float64), 0.5 / step, axis=1, order=1))
+    n, m = g.shape
+    r = np.arange(n)
+    mean = g.mean(axis=0)
+    tau = rel * float(mean.max())
+    peak = np.zeros(m, dtype=bool)
+    peak[1:-1] = (mean[1:-1] >= tau) & (mean[1:-1] >= mean[:-2]) & (mean[1:-1] > mean[2:])
+    out = np.full((n, 2), np.nan)
+    if n < 2:
+        return out
+    local = np.zeros_like(g, dtype=bool)
+    local[:, 1:-1] = (g[:, 1:-1] >= g[:, :-2]) & (g[:, 1:-1] >= g[:, 2:]) & (g[:, 1:-1] > 0)
+    idx = r[:: max(1, n // 100)]
+    for side, order in ((0, np.arange(m)), (1, np.arange(m)[::-1])):
+        ks = [k for k in order if peak[k]]
+        if not ks:
+            continue
+        centre = np.full(n, float(ks[0]))
+        for final, reach in ((False, 0.5 * max_drift + 1.0), (True, 1.0)):
+            # each profile's peak nearest to the line so far, within ``reach`` px of it
+            dist = np.abs(np.arange(m)[None, :] - centre[:, None])
+            near = local & (dist <= reach / step)
+            j = np.argmin(np.where(near, dist, np.inf), axis=1)
+            ok = near[r, j]
+            if int(ok.sum()) < max(2, n // 2):
+                break
+            jj = np.clip(j, 1, m - 2)
+            y0, y1, y2 = g[r, jj - 1], g[r, jj], g[r, jj + 1]
+            den = y0 - 2.0 * y1 + y2
+            frac = np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0)
+            pos = np.where(ok, jj + np.clip(frac, -0.5, 0.5), np.nan)
+            if final:
+                out[:, side] = offs[0] + pos * step
+                break
+            # Theil-Sen line of the positions over the profile index
+            sub = idx[ok[idx]]
+            a, b = np.triu_indices(len(sub), 1)
+            slope = 0.0
+            if len(a):
+                slope = float(np.median((pos[sub[b]] - pos[sub[a]]) / (sub[b] - sub[a])))
+            icpt = float(np.median(pos[ok] - slope * r[ok]))
+            centre = icpt + slope * r
+    return out
+
+
 def _taper_span(strut: Strut, min_span_px: float = 12.0) -> tuple[float, float] | None:
     """The part of ``strut`` where `measure_taper` measures its width: ``max(2 w, 4)`` px
     clear of each end; None when shorter than ``max(min_span_px, TAPER_MIN_SPAN_WIDTHS w)``."""
@@ -1779,6 +1844,42 @@ def _taper_reach(
     return out[0], out[1]
 
 
+# `measure_taper`'s slope from block means: the clear span in this many equal parts
+TAPER_BLOCKS = 8
+
+
+def _block_slope_sd(x: np.ndarray, width: np.ndarray, blocks: int = TAPER_BLOCKS) -> float:
+    """The standard deviation of a width line's slope from the means of ``blocks`` equal
+    parts of the span (``x`` the positions, centred; ``width`` the widths there): the scatter
+    of the block means about their own line, with ``blocks - 2`` degrees of freedom; 0 with
+    fewer than four parts holding a width.
+
+    The scatter of single widths about the line (the fit's own sigma) holds only while
+    neighbouring widths err independently and the widths do lie on a line. Neither holds
+    where the outermost edge on one side is a point of a shading ramp rather than a
+    silhouette step (a strut lit from near the view direction fading into a panel of its
+    limb's brightness): there the edge found jumps between a ripple of the panel's texture
+    and the flank from one stretch of the strut to the next (bracket family tuning seed
+    29, frame 9: a base 15-16 px wide measured 14.6 px over its first half and 11 px over
+    its second, taper -0.28 +- 0.02 for a true +0.09). The block means see such a jump as
+    scatter about the line; on independent scatter they give the fit's sigma on average."""
+    lo, hi = float(x.min()), float(x.max())
+    if not hi > lo:
+        return 0.0
+    part = np.minimum(((x - lo) / (hi - lo) * blocks).astype(int), blocks - 1)
+    cnt = np.bincount(part, minlength=blocks)
+    have = cnt > 0
+    if int(have.sum()) < 4:
+        return 0.0
+    xm = np.bincount(part, weights=x, minlength=blocks)[have] / cnt[have]
+    wm = np.bincount(part, weights=width, minlength=blocks)[have] / cnt[have]
+    xc = xm - xm.mean()
+    sxx = float(xc @ xc)
+    slope = float(xc @ (wm - wm.mean())) / sxx
+    e = wm - wm.mean() - slope * xc
+    return math.sqrt(float(e @ e) / (len(xm) - 2) / sxx)
+
+
 def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) -> Strut:
     """``strut`` with its ``taper`` measured: how its image width changes along it.
 
@@ -1786,18 +1887,23 @@ def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) 
     points of its centre line is in the inverse ratio of their depths (`predicted_taper`), a
     ratio that tells apart poses which put the same vertices on the same pixels but tilt the
     struts differently (the P3P solutions of the paper's view). Both edges are located on a
-    cross profile at every pixel along the strut, out to ``w / 2 + max(2.5, w / 3)`` px of its
-    centre line (``w`` its width): on each side the outermost gradient peak of at least
-    ``TAPER_EDGE`` of the profile's steepest (`_outer_edges`: the silhouette, whether the
-    limb beside it is lit or only dimly shaded; a blurred step's steepest point stays put),
-    ``max(2 w, 4)`` px clear of each end (where another strut or the array crosses it), and
-    the widths are
-    fitted by a straight line in ``s`` (least squares, then again without the points beyond
-    3 robust standard deviations). What changes the edges' offset from the silhouette
-    (shading, a lit part only, blur) is nearly the same all along a strut, so the *ratio*
-    keeps the depth's. ``taper_sigma`` comes from the scatter of the widths about the line;
-    NaN when the clear span is shorter than ``max(min_span_px, TAPER_MIN_SPAN_WIDTHS w)`` or
-    the fit fails."""
+    cross profile at every pixel along the strut, ``max(2 w, 4)`` px clear of each end
+    (where another strut or the array crosses it), out to the reach of `_taper_reach` (at
+    least ``w / 2 + max(2.5, w / 3)`` px of its centre line, ``w`` its width), in two ways:
+    on each profile the outermost gradient peak of at least ``TAPER_EDGE`` of its steepest
+    (`_outer_edges`: the silhouette, whether the limb beside it is lit or only dimly shaded;
+    a blurred step's steepest point stays put), and each side's edge chosen once for the
+    whole strut (`_outer_edge_lines`: steady where the limb has no step and the outermost
+    peak of a profile is a ripple). Each set of widths is fitted by a straight line in
+    ``s`` (a Theil-Sen start, then least squares three times without the points beyond 3
+    robust standard deviations), and the set whose widths lie on their line best (the
+    smaller ``taper_sigma``) is kept. What changes the edges' offset from the silhouette
+    (shading, a lit part only) is nearly the same all along a strut, so the *ratio* keeps
+    the depth's. ``taper_sigma`` comes from the scatter of the widths about the line, or of
+    the means of eight parts of the span about theirs where that is larger
+    (`_block_slope_sd`: neighbouring widths err together, and an edge can jump); NaN when
+    the clear span is shorter than ``max(min_span_px, TAPER_MIN_SPAN_WIDTHS w)`` or the fit
+    fails."""
     strut = replace(strut, taper=math.nan, taper_sigma=math.nan, taper_span=(math.nan, math.nan))
     span = _taper_span(strut, min_span_px)
     if span is None:
@@ -1808,8 +1914,24 @@ def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) 
     before, after = _taper_reach(blurred, strut, ss, n)
     offs = np.arange(-before, after + 1e-9, 0.25)
     rows = _cross_profiles(blurred, strut, ss, offs, n, cv2.INTER_CUBIC).astype(np.float64)
-    edges = _outer_edges(rows, offs, TAPER_EDGE).T
-    width = edges[1] - edges[0]
+    best: tuple[float, float, tuple[float, float]] | None = None
+    for edges in (
+        _outer_edges(rows, offs, TAPER_EDGE),
+        _outer_edge_lines(rows, offs, TAPER_EDGE, 0.25 * w + 2.0),
+    ):
+        fit = _width_line(ss, edges[:, 1] - edges[:, 0], w)
+        if fit is not None and (best is None or fit[1] < best[1]):
+            best = fit
+    if best is None:
+        return strut
+    return replace(strut, taper=best[0], taper_sigma=best[1], taper_span=best[2])
+
+
+def _width_line(
+    ss: np.ndarray, width: np.ndarray, w: float
+) -> tuple[float, float, tuple[float, float]] | None:
+    """(taper, its sigma, span) of the widths ``width`` at ``ss`` along a strut ``w`` px
+    wide (`measure_taper`); None when too few are kept or an end's width is not positive."""
     keep = np.isfinite(width) & (width > 0.25 * w)
     width = np.where(keep, width, 0.0)
     if int(keep.sum()) >= max(8, len(ss) // 2):
@@ -1826,7 +1948,7 @@ def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) 
         keep = keep & (np.abs(res) <= max(3.0 * mad, 0.05))
     for it in range(3):
         if int(keep.sum()) < max(8, len(ss) // 2):
-            return strut
+            return None
         x = ss[keep] - ss[keep].mean()
         A = np.stack([np.ones_like(x), x], axis=1)
         coef, *_ = np.linalg.lstsq(A, width[keep], rcond=None)
@@ -1839,16 +1961,17 @@ def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) 
     sd = float(np.sqrt(np.sum(res[keep] ** 2) / max(m - 2, 1)))
     ends = coef[0] + coef[1] * (np.array([ss[keep].min(), ss[keep].max()]) - ss[keep].mean())
     if not np.all(ends > 0):
-        return strut
+        return None
     sxx = float(x @ x)
     extent = float(ss[keep].max() - ss[keep].min())
-    # var of the slope sd^2 / sxx; the log ratio is slope x extent / mean width
-    sigma = sd / math.sqrt(max(sxx, 1e-12)) * extent / float(coef[0])
-    return replace(
-        strut,
-        taper=float(math.log(ends[1] / ends[0])),
-        taper_sigma=sigma,
-        taper_span=(float(ss[keep].min()), float(ss[keep].max())),
+    # var of the slope sd^2 / sxx, or the blocks' where the widths are not a line with
+    # independent scatter (`_block_slope_sd`); the log ratio is slope x extent / mean width
+    slope_sd = max(sd / math.sqrt(max(sxx, 1e-12)), _block_slope_sd(x, width[keep]))
+    sigma = slope_sd * extent / float(coef[0])
+    return (
+        float(math.log(ends[1] / ends[0])),
+        sigma,
+        (float(ss[keep].min()), float(ss[keep].max())),
     )
 
 
