@@ -1678,17 +1678,39 @@ def _silhouette_refit(img: np.ndarray, strut: Strut) -> Strut:
     return replace(strut, point=strut.point + shift * n, width_px=w + ext[0] + ext[1])
 
 
-def _outer_edges(rows: np.ndarray, offs: np.ndarray, rel: float) -> np.ndarray:
-    """Per cross profile (rows x samples at the evenly spaced ``offs``), the outermost edge
+def _profile_gradient(rows: np.ndarray, step: float) -> np.ndarray:
+    """The gradient magnitude along each cross profile (rows x samples ``step`` px apart),
+    smoothed along the profile (0.5 px): the derivative of an interpolated profile ripples
+    with the pixel period, and a ripple on a step's flank would pass for an outer peak."""
+    return np.abs(gaussian_filter1d(rows.astype(np.float64), 0.5 / step, axis=1, order=1))
+
+
+def _parabola_offset(y0: np.ndarray, y1: np.ndarray, y2: np.ndarray) -> np.ndarray:
+    """Sub-sample offset (within +-0.5) of the vertex of the parabola through three evenly
+    spaced samples ``y0, y1, y2`` around a peak ``y1``; 0 where they do not curve down."""
+    den = y0 - 2.0 * y1 + y2
+    frac = np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0)
+    return np.clip(frac, -0.5, 0.5)
+
+
+def _theil_sen_slope(x: np.ndarray, y: np.ndarray) -> float:
+    """The median of the slopes between every pair of points ``(x, y)``; 0 with fewer than
+    two points."""
+    i, j = np.triu_indices(len(x), 1)
+    if not len(i):
+        return 0.0
+    return float(np.median((y[j] - y[i]) / (x[j] - x[i])))
+
+
+def _outer_edges(g: np.ndarray, offs: np.ndarray, rel: float) -> np.ndarray:
+    """Per cross profile (``g`` its `_profile_gradient`, rows x samples at the evenly
+    spaced ``offs``), the outermost edge
     on each side (n, 2): scanning inward, the first local maximum of the gradient magnitude
     that reaches ``rel`` of the profile's largest, sub-sample by a parabola; NaN where there
     is none. The outermost step is the silhouette whatever the shading inside it (a lit
     part's ramp, a dim shaded limb), and a blurred step's steepest point does not move with
     the blur."""
-    # smoothed along the profile (0.5 px): the derivative of an interpolated profile ripples
-    # with the pixel period, and a ripple on a step's flank would pass for an outer peak
     step = offs[1] - offs[0]
-    g = np.abs(gaussian_filter1d(rows, 0.5 / step, axis=1, order=1))
     n, m = g.shape
     tau = rel * g.max(axis=1, keepdims=True)
     peak = np.zeros_like(g, dtype=bool)
@@ -1702,17 +1724,14 @@ def _outer_edges(rows: np.ndarray, offs: np.ndarray, rel: float) -> np.ndarray:
         ok = mask[r, k]
         k = k if side == 0 else m - 1 - k
         k = np.clip(k, 1, m - 2)
-        y0, y1, y2 = g[r, k - 1], g[r, k], g[r, k + 1]
-        den = y0 - 2.0 * y1 + y2
-        frac = np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0)
-        out[:, side] = np.where(ok, offs[k] + np.clip(frac, -0.5, 0.5) * step, np.nan)
+        frac = _parabola_offset(g[r, k - 1], g[r, k], g[r, k + 1])
+        out[:, side] = np.where(ok, offs[k] + frac * step, np.nan)
     return out
 
 
-def _outer_edge_lines(
-    rows: np.ndarray, offs: np.ndarray, rel: float, max_drift: float
-) -> np.ndarray:
-    """Per cross profile (rows along a strut x samples at the evenly spaced ``offs``), each
+def _outer_edge_lines(g: np.ndarray, offs: np.ndarray, rel: float, max_drift: float) -> np.ndarray:
+    """Per cross profile (``g`` its `_profile_gradient`, rows along a strut x samples at the
+    evenly spaced ``offs``), each
     side's silhouette (n, 2; NaN where a profile has none near it), chosen *once for the
     whole strut*: the outermost maximum of the mean gradient magnitude over all profiles
     that reaches ``rel`` of its steepest; on every profile the gradient peak nearest to it
@@ -1729,7 +1748,6 @@ def _outer_edge_lines(
     The mean over the strut keeps a silhouette step that runs its whole length, however
     faint, and averages a texture's ripples away."""
     step = float(offs[1] - offs[0])
-    g = np.abs(gaussian_filter1d(rows.astype(np.float64), 0.5 / step, axis=1, order=1))
     n, m = g.shape
     r = np.arange(n)
     mean = g.mean(axis=0)
@@ -1756,19 +1774,13 @@ def _outer_edge_lines(
             if int(ok.sum()) < max(2, n // 2):
                 break
             jj = np.clip(j, 1, m - 2)
-            y0, y1, y2 = g[r, jj - 1], g[r, jj], g[r, jj + 1]
-            den = y0 - 2.0 * y1 + y2
-            frac = np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0)
-            pos = np.where(ok, jj + np.clip(frac, -0.5, 0.5), np.nan)
+            pos = np.where(ok, jj + _parabola_offset(g[r, jj - 1], g[r, jj], g[r, jj + 1]), np.nan)
             if final:
                 out[:, side] = offs[0] + pos * step
                 break
             # Theil-Sen line of the positions over the profile index
             sub = idx[ok[idx]]
-            a, b = np.triu_indices(len(sub), 1)
-            slope = 0.0
-            if len(a):
-                slope = float(np.median((pos[sub[b]] - pos[sub[a]]) / (sub[b] - sub[a])))
+            slope = _theil_sen_slope(sub, pos[sub])
             icpt = float(np.median(pos[ok] - slope * r[ok]))
             centre = icpt + slope * r
     return out
@@ -1913,11 +1925,12 @@ def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) 
     n = np.array([-strut.direction[1], strut.direction[0]])
     before, after = _taper_reach(blurred, strut, ss, n)
     offs = np.arange(-before, after + 1e-9, 0.25)
-    rows = _cross_profiles(blurred, strut, ss, offs, n, cv2.INTER_CUBIC).astype(np.float64)
+    rows = _cross_profiles(blurred, strut, ss, offs, n, cv2.INTER_CUBIC)
+    g = _profile_gradient(rows, float(offs[1] - offs[0]))
     best: tuple[float, float, tuple[float, float]] | None = None
     for edges in (
-        _outer_edges(rows, offs, TAPER_EDGE),
-        _outer_edge_lines(rows, offs, TAPER_EDGE, 0.25 * w + 2.0),
+        _outer_edges(g, offs, TAPER_EDGE),
+        _outer_edge_lines(g, offs, TAPER_EDGE, 0.25 * w + 2.0),
     ):
         fit = _width_line(ss, edges[:, 1] - edges[:, 0], w)
         if fit is not None and (best is None or fit[1] < best[1]):
@@ -1940,8 +1953,7 @@ def _width_line(
         # start's slope follows it so far that the clipping below keeps the run (tuning
         # seed 73: a stub widened by 3 px over its first 25 px, taper -0.19 for -0.06)
         idx = np.flatnonzero(keep)[:: max(1, int(keep.sum()) // 100)]
-        i, j = np.triu_indices(len(idx), 1)
-        slope = float(np.median((width[idx[j]] - width[idx[i]]) / (ss[idx[j]] - ss[idx[i]])))
+        slope = _theil_sen_slope(ss[idx], width[idx])
         res = width - slope * ss
         res -= float(np.median(res[keep]))
         mad = 1.4826 * float(np.median(np.abs(res[keep])))
