@@ -282,16 +282,23 @@ def test_short_edges_pair_at_the_angle_their_length_allows() -> None:
 def test_short_edges_of_a_wide_bar_may_converge_by_a_fraction_of_its_width() -> None:
     """In the short-edge pass two edges also pair within ``atan(short_taper * sep / l)``: a
     close strut's silhouette edges converge toward its axis's vanishing point by a fraction
-    of its width (tuning seed 70: a stub 22 px wide, 75 px edges 3.4 deg apart). 24 px apart
-    and 75 px long: 0.3 x 24 = 7.2 px, 5.5 deg; 4 px alone allow 3.05 deg. A thin bar (6 px
-    apart, 1.8 px) keeps the fixed 4 px. Exact segments: the tolerance is the whole test."""
+    of its width (tuning seed 70: a stub 22 px wide, 75 px edges 3.4 deg apart), and a
+    stub's interior edge leans toward the base by a fraction of its width (seed 70 at 1.5 m:
+    a 10 px bar, 60 px edges 4.3 deg apart). 24 px apart and 75 px long: 0.5 x 24 = 12 px,
+    9.1 deg; 4 px alone allow 3.05 deg. 10 px apart and 60 px long: 5 px, 4.8 deg. A thin
+    bar (6 px apart, 3 px) keeps the fixed 4 px. Exact segments: the tolerance is the whole
+    test."""
     cfg = StrutDetectorConfig()
     end, taper = cfg.short_edge_px, cfg.short_taper
     wide = segment_pair(75.0, 3.4, sep_px=24.0)
     assert pairs_of(wide, cfg, end) == []
     assert pairs_of(wide, cfg, end, taper) == [(0, 1)]
-    assert pairs_of(segment_pair(75.0, 5.0, sep_px=24.0), cfg, end, taper) == [(0, 1)]
-    assert pairs_of(segment_pair(75.0, 6.0, sep_px=24.0), cfg, end, taper) == []
+    assert pairs_of(segment_pair(75.0, 8.5, sep_px=24.0), cfg, end, taper) == [(0, 1)]
+    assert pairs_of(segment_pair(75.0, 9.7, sep_px=24.0), cfg, end, taper) == []
+    leaning = segment_pair(60.0, 4.3, sep_px=10.0)
+    assert pairs_of(leaning, cfg, end) == []
+    assert pairs_of(leaning, cfg, end, taper) == [(0, 1)]
+    assert pairs_of(segment_pair(60.0, 5.3, sep_px=10.0), cfg, end, taper) == []
     thin = segment_pair(75.0, 3.4, sep_px=6.0)
     assert pairs_of(thin, cfg, end, taper) == []
     # the long struts' pass (no end offset) ignores the taper
