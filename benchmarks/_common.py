@@ -4,12 +4,19 @@ from __future__ import annotations
 
 import os
 import platform
+from collections.abc import Iterator
+from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
 
+import numpy as np
+
+from satpose.datasets.bracket_family import measured_points_b, render_bracket_sequence
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import preset
 from satpose.datasets.seed_split import TUNING_SEEDS
+from satpose.datasets.sequence import Sequence, load_sequence
+from satpose.frontend.preprocess import Undistorter
 
 
 def ensure_rendered(name: str, root: Path) -> Path:
@@ -66,3 +73,42 @@ def tuning_seeds(text: str) -> list[int]:
     if bad:
         raise SystemExit(f"--seeds: {bad} are not tuning seeds; validation seeds are only scored")
     return out
+
+
+@dataclass(frozen=True)
+class BracketMember:
+    """One bracket-family member as the strut benchmarks read it: the sequence (with its
+    truth), the bracket's vertices ``P1, P2, P5`` and its measured points (``P1, P2`` and
+    the visible stub ends, `measured_points_b`), the struts' radius and the left camera's
+    undistorter."""
+
+    seq: Sequence
+    vertices: np.ndarray
+    points: np.ndarray
+    radius_m: float
+    undistort: Undistorter
+
+
+def bracket_members(seeds: list[int], root: Path) -> Iterator[tuple[int, BracketMember]]:
+    """The bracket-family members ``seeds`` under ``root`` (``seed-N``; rendered at the
+    benchmarks' 12 frames, 960x768 where missing), in order."""
+    for seed in seeds:
+        path = root / f"seed-{seed}"
+        if not (path / "frames.csv").is_file():
+            print(f"rendering seed {seed}", flush=True)
+            render_bracket_sequence(seed, path, frames=12, size=(960, 768), overwrite=True)
+        seq = load_sequence(path)
+        assert seq.target is not None and seq.target.bracket is not None
+        assert seq.truth is not None
+        b = seq.target.bracket
+        V = np.array([b.P1, b.P2, b.P5])
+        yield (
+            seed,
+            BracketMember(
+                seq=seq,
+                vertices=V,
+                points=measured_points_b(V, b.visible_fraction),
+                radius_m=float(seq.target.extras["bracket_strut_width_m"]) / 2,
+                undistort=Undistorter(seq.calibration.left),
+            ),
+        )

@@ -30,10 +30,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import machine_summary, tuning_seeds, write_page
+from _common import BracketMember, bracket_members, machine_summary, tuning_seeds, write_page
 
-from satpose.datasets.bracket_family import measured_points_b, render_bracket_sequence
-from satpose.datasets.sequence import load_sequence
 from satpose.frontend.bracket import project
 from satpose.frontend.bracket_lines import (
     StrutDetectorConfig,
@@ -41,27 +39,21 @@ from satpose.frontend.bracket_lines import (
     line_segments,
     silhouette_width_px,
 )
-from satpose.frontend.preprocess import Undistorter
 
 TAPERS = (0.0, 0.3, 0.4, 0.5, 0.6)
 
 
-def stub_edges(seq_path: Path, cfg: StrutDetectorConfig) -> list[tuple[float, ...]]:
+def stub_edges(m: BracketMember, cfg: StrutDetectorConfig) -> list[tuple[float, ...]]:
     """Per visible stub and frame of one member: the number of edges found (0-2),
     true width px, angle deg, shorter length px, separation px, then 1/0 per ``TAPERS``
     (paired by the short-edge pass), NaN where fewer than two edges were found."""
-    seq = load_sequence(seq_path)
-    assert seq.target is not None and seq.target.bracket is not None and seq.truth is not None
-    b = seq.target.bracket
-    V = np.array([b.P1, b.P2, b.P5])
+    seq, V, pts, r = m.seq, m.vertices, m.points, m.radius_m
+    assert seq.truth is not None
     cam = seq.calibration.left
-    und = Undistorter(cam)
-    r = float(seq.target.extras["bracket_strut_width_m"]) / 2
-    pts = measured_points_b(V, b.visible_fraction)  # P1, P2, stub end from P1, from P2
     rows: list[tuple[float, ...]] = []
     for fr in seq.frames:
         T = seq.truth.pose(seq.truth.row_of_frame(fr.index))
-        seg = line_segments(und(fr.image("left")).gray8, cfg)
+        seg = line_segments(m.undistort(fr.image("left")).gray8, cfg)
         if len(seg) == 0:
             continue
         px = project(T, pts, cam.K)
@@ -119,12 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     cfg = StrutDetectorConfig()
     rows: list[tuple[float, ...]] = []
-    for seed in args.seeds:
-        seq = args.root / f"seed-{seed}"
-        if not (seq / "frames.csv").is_file():
-            print(f"rendering seed {seed}", flush=True)
-            render_bracket_sequence(seed, seq, frames=12, size=(960, 768), overwrite=True)
-        rows += stub_edges(seq, cfg)
+    for seed, member in bracket_members(args.seeds, args.root):
+        rows += stub_edges(member, cfg)
         print(seed, len(rows), flush=True)
     R = np.array(rows, dtype=float)
     both = R[R[:, 0] == 2]

@@ -29,10 +29,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import machine_summary, tuning_seeds, write_page
+from _common import BracketMember, bracket_members, machine_summary, tuning_seeds, write_page
 
-from satpose.datasets.bracket_family import measured_points_b, render_bracket_sequence
-from satpose.datasets.sequence import load_sequence
 from satpose.frontend.bracket import project
 from satpose.frontend.bracket_lines import (
     StrutDetectorConfig,
@@ -41,29 +39,23 @@ from satpose.frontend.bracket_lines import (
     predicted_taper,
     silhouette_candidates,
 )
-from satpose.frontend.preprocess import Undistorter
 
 WIDTH_BINS = ((0, 6), (6, 8), (8, 10), (10, 13), (13, 17), (17, 25), (25, 1e9))
 
 
-def measure(seq_path: Path) -> list[tuple[float, ...]]:
+def measure(m: BracketMember) -> list[tuple[float, ...]]:
     """(refit 0/1, strut 0-2, width px, measured, true, stated sigma) per matched strut and
     frame of one member."""
-    seq = load_sequence(seq_path)
-    assert seq.target is not None and seq.target.bracket is not None and seq.truth is not None
-    b = seq.target.bracket
-    V = np.array([b.P1, b.P2, b.P5])
+    seq, V, pts, r = m.seq, m.vertices, m.points, m.radius_m
+    assert seq.truth is not None
     cam = seq.calibration.left
-    und = Undistorter(cam)
-    r = float(seq.target.extras["bracket_strut_width_m"]) / 2
     cfg = StrutDetectorConfig(strut_radius_m=r)
-    pts = measured_points_b(V, b.visible_fraction)  # P1, P2, stub end from P1, from P2
     axes = ((V[0], V[1]), (V[0], V[2]), (V[1], V[2]))
     spans = ((0, 1), (0, 2), (1, 3))
     rows: list[tuple[float, ...]] = []
     for fr in seq.frames:
         T = seq.truth.pose(seq.truth.row_of_frame(fr.index))
-        prep = und(fr.image("left"))
+        prep = m.undistort(fr.image("left"))
         raw = partial_candidates(prep.gray8, cfg, silhouette=False)
         if not isinstance(raw, tuple):
             continue
@@ -96,12 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("docs/results/bracket_taper.md"))
     args = ap.parse_args(argv)
     rows: list[tuple[float, ...]] = []
-    for seed in args.seeds:
-        seq = args.root / f"seed-{seed}"
-        if not (seq / "frames.csv").is_file():
-            print(f"rendering seed {seed}", flush=True)
-            render_bracket_sequence(seed, seq, frames=12, size=(960, 768), overwrite=True)
-        rows += measure(seq)
+    for seed, member in bracket_members(args.seeds, args.root):
+        rows += measure(member)
         print(seed, len(rows), flush=True)
     R = np.array(rows, dtype=float)
     cfg = StrutDetectorConfig()
