@@ -59,7 +59,7 @@ def stub_edges(m: BracketMember, cfg: StrutDetectorConfig) -> list[tuple[float, 
         px = project(T, pts, cam.K)
         length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
         du = (seg[:, 2:] - seg[:, :2]) / length[:, None]
-        for start, end, other, axis_end in ((0, 2, 1, V[2]), (1, 3, 0, V[2])):
+        for start, end, other in ((0, 2, 1), (1, 3, 0)):  # the stubs from P1 and P2
             a, e = px[start], px[end]
             L = float(np.linalg.norm(e - a))
             if not L > 1.0:
@@ -68,7 +68,7 @@ def stub_edges(m: BracketMember, cfg: StrutDetectorConfig) -> list[tuple[float, 
             n = np.array([-u[1], u[0]])
             inward = 1.0 if float((px[other] - a) @ n) > 0 else -1.0
             w = silhouette_width_px(
-                0.5 * (a + e), T.apply(V[start][None])[0], T.rotate(axis_end - V[start]), r, cam.K
+                0.5 * (a + e), T.apply(V[start][None])[0], T.rotate(V[2] - V[start]), r, cam.K
             )
             t0, t1 = (seg[:, :2] - a) @ n * inward, (seg[:, 2:] - a) @ n * inward
             s0, s1 = (seg[:, :2] - a) @ u, (seg[:, 2:] - a) @ u
@@ -79,26 +79,23 @@ def stub_edges(m: BracketMember, cfg: StrutDetectorConfig) -> list[tuple[float, 
                 & (np.abs(du @ u) > math.cos(math.radians(20.0)))
             )
             mid = 0.5 * (t0 + t1)
-            found = []
-            for side in (-1.0, 1.0):  # exterior, interior
+            found = []  # the longest segment on the exterior and on the interior side
+            for side in (-1.0, 1.0):
                 idx = np.where(band & (np.sign(mid) == side) & (np.abs(mid) > 1.5))[0]
-                found.append(int(idx[np.argmax(length[idx])]) if len(idx) else None)
-            if None in found:
-                n_found = sum(f is not None for f in found)
-                rows.append((n_found, w, *[math.nan] * (3 + len(TAPERS))))
+                if len(idx):
+                    found.append(int(idx[np.argmax(length[idx])]))
+            if len(found) < 2:
+                rows.append((len(found), w, *[math.nan] * (3 + len(TAPERS))))
                 continue
-            i, j = sorted(found)  # type: ignore[type-var]
+            i, j = sorted(found)  # segment order, as `_bars` pairs them
             ang = math.degrees(math.acos(min(1.0, abs(float(du[i] @ du[j])))))
             sep = abs(float((0.5 * (seg[j, :2] + seg[j, 2:]) - seg[i, :2]) @ [-du[i, 1], du[i, 0]]))
             p, q = seg[[i, j], :2], seg[[i, j], 2:]
-            paired = [
-                float(
-                    bool(
-                        _parallel_pairs(p, q, du[[i, j]], length[[i, j]], cfg, cfg.short_edge_px, t)
-                    )
-                )
+            pairs = [
+                _parallel_pairs(p, q, du[[i, j]], length[[i, j]], cfg, cfg.short_edge_px, t)
                 for t in TAPERS
             ]
+            paired = [1.0 if pr else 0.0 for pr in pairs]
             rows.append((2, w, ang, float(min(length[i], length[j])), sep, *paired))
     return rows
 
