@@ -1897,7 +1897,44 @@ def _block_slope_sd(x: np.ndarray, width: np.ndarray, blocks: int = TAPER_BLOCKS
     return math.sqrt(float(e @ e) / (len(xm) - 2) / sxx)
 
 
-def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) -> Strut:
+# `measure_taper`'s two edge sets disagree when their tapers differ by more than this many
+# sigmas of the difference (each set's own sigma and the floor in quadrature)
+TAPER_AGREE = 3.0
+
+WidthLine = tuple[float, float, tuple[float, float]]
+
+
+def _taper_of_two_sets(a: WidthLine | None, b: WidthLine | None, floor: float) -> WidthLine | None:
+    """The taper of two edge sets' width lines ``(taper, sigma, span)`` (None: no fit): the
+    one whose widths lie on their line best (the smaller sigma); where the two tapers differ
+    by more than ``TAPER_AGREE`` times ``hypot(sigma_a, sigma_b, floor)``, one set has failed
+    and its fit does not say which, so the kept taper's sigma grows to ``hypot(sigma,
+    difference)``: a claim that covers the other set's value.
+
+    The smaller sigma picks the wrong set where one side's edges follow a constant offset
+    instead of a converging silhouette: on a 7-10 px strut whose limb is a long smooth ramp
+    (no silhouette step), the edges chosen once per strut (`_outer_edge_lines`) lock onto
+    the lit dome's inner flank, lie on a straight line well and give a taper 0.07-0.15 low
+    with a sigma of 0.008-0.019 (bracket family tuning seed 42, docs/bracket.md). On the
+    taper benchmark (tuning 0-35) the rule leaves every taper as it was and halves the weighed
+    struts' normalised errors beyond 3 sigmas (3.0 -> 1.5 %)."""
+    fits = [f for f in (a, b) if f is not None]
+    if not fits:
+        return None
+    best = min(fits, key=lambda f: f[1])
+    if a is not None and b is not None:
+        d = abs(a[0] - b[0])
+        if d > TAPER_AGREE * math.hypot(a[1], b[1], floor):
+            return (best[0], math.hypot(best[1], d), best[2])
+    return best
+
+
+def measure_taper(
+    blurred: np.ndarray,
+    strut: Strut,
+    min_span_px: float = 12.0,
+    floor: float = StrutDetectorConfig.taper_floor,
+) -> Strut:
     """``strut`` with its ``taper`` measured: how its image width changes along it.
 
     A strut is a cylinder of one radius, so its image narrows with depth: the width at two
@@ -1914,7 +1951,9 @@ def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) 
     peak of a profile is a ripple). Each set of widths is fitted by a straight line in
     ``s`` (a Theil-Sen start, then least squares three times without the points beyond 3
     robust standard deviations), and the set whose widths lie on their line best (the
-    smaller ``taper_sigma``) is kept. What changes the edges' offset from the silhouette
+    smaller ``taper_sigma``) is kept; where the two disagree beyond their sigmas and the
+    ``floor`` (the config's ``taper_floor``), its sigma grows to cover the other's taper
+    (`_taper_of_two_sets`). What changes the edges' offset from the silhouette
     (shading, a lit part only) is nearly the same all along a strut, so the *ratio* keeps
     the depth's. ``taper_sigma`` comes from the scatter of the widths about the line, or of
     the means of eight parts of the span about theirs where that is larger
@@ -1932,22 +1971,20 @@ def measure_taper(blurred: np.ndarray, strut: Strut, min_span_px: float = 12.0) 
     offs = np.arange(-before, after + 1e-9, 0.25)
     rows = _cross_profiles(blurred, strut, ss, offs, n, cv2.INTER_CUBIC)
     g = _profile_gradient(rows, float(offs[1] - offs[0]))
-    best: tuple[float, float, tuple[float, float]] | None = None
-    for edges in (
-        _outer_edges(g, offs, TAPER_EDGE),
-        _outer_edge_lines(g, offs, TAPER_EDGE, 0.25 * w + 2.0),
-    ):
-        fit = _width_line(ss, edges[:, 1] - edges[:, 0], w)
-        if fit is not None and (best is None or fit[1] < best[1]):
-            best = fit
+    profile_wise, once = (
+        _width_line(ss, edges[:, 1] - edges[:, 0], w)
+        for edges in (
+            _outer_edges(g, offs, TAPER_EDGE),
+            _outer_edge_lines(g, offs, TAPER_EDGE, 0.25 * w + 2.0),
+        )
+    )
+    best = _taper_of_two_sets(profile_wise, once, floor)
     if best is None:
         return strut
     return replace(strut, taper=best[0], taper_sigma=best[1], taper_span=best[2])
 
 
-def _width_line(
-    ss: np.ndarray, width: np.ndarray, w: float
-) -> tuple[float, float, tuple[float, float]] | None:
+def _width_line(ss: np.ndarray, width: np.ndarray, w: float) -> WidthLine | None:
     """(taper, its sigma, span) of the widths ``width`` at ``ss`` along a strut ``w`` px
     wide (`measure_taper`); None when too few are kept or an end's width is not positive."""
     keep = np.isfinite(width) & (width > 0.25 * w)
@@ -2089,7 +2126,7 @@ def _finished(
     blurred = cv2.GaussianBlur(scaled, (0, 0), config.blur_sigma_px)
     if silhouette:
         cands = [_silhouette_refit(blurred, c) for c in cands]
-    return [measure_taper(blurred, c) for c in cands]
+    return [measure_taper(blurred, c, floor=config.taper_floor) for c in cands]
 
 
 def silhouette_candidates(

@@ -317,7 +317,8 @@ def test_taper_with_a_faint_strip_beside_half_the_bar() -> None:
     0.017 + the floor: 15 sigmas). The edges chosen once for the whole bar
     (`_outer_edge_lines`) follow one edge all along; `measure_taper` keeps the edge set whose
     widths lie on a line best (the smaller stated sigma): within 0.05 of the truth (0.028)
-    and within 2 sigmas with the floor."""
+    and within 2 sigmas with the floor. The two sets disagree far beyond their sigmas, so
+    the kept one's sigma covers the other's taper (`_taper_of_two_sets`: 0.41)."""
     img, strut = tapered_bar(10.0, 14.0, 0.0, 0)
     img = img.copy()
     y0 = 120.3 + 5.0
@@ -326,3 +327,36 @@ def test_taper_with_a_faint_strip_beside_half_the_bar() -> None:
     err = abs(st.taper - true_taper(st, 10.0, 14.0))
     assert err < 0.05, err
     assert err < 2.0 * math.hypot(st.taper_sigma, StrutDetectorConfig().taper_floor), st
+    assert st.taper_sigma > 0.3, st
+
+
+SPAN = (-50.0, 50.0)
+
+
+def test_two_edge_sets_that_agree_keep_the_better_fit() -> None:
+    """Two edge sets' width lines within ``TAPER_AGREE`` sigmas of each other (each set's
+    sigma and the floor in quadrature): the one with the smaller sigma, unchanged; one set
+    alone: that one; none: None."""
+    a, b = (0.10, 0.010, SPAN), (0.12, 0.005, SPAN)
+    assert bl._taper_of_two_sets(a, b, 0.02) == b
+    assert bl._taper_of_two_sets(b, a, 0.02) == b
+    limit = bl.TAPER_AGREE * math.hypot(0.010, 0.005, 0.02)
+    c = (0.12 + limit - 1e-6, 0.010, SPAN)
+    assert bl._taper_of_two_sets(c, b, 0.02) == b
+    assert bl._taper_of_two_sets(None, a, 0.02) == a
+    assert bl._taper_of_two_sets(a, None, 0.02) == a
+    assert bl._taper_of_two_sets(None, None, 0.02) is None
+
+
+def test_two_edge_sets_that_disagree_state_the_difference() -> None:
+    """Bracket family tuning seed 42, frame 9, the base (8.7 px wide, true taper +0.222): the
+    profile-wise set measured +0.215 +- 0.020, the set chosen once per strut +0.092 +- 0.015
+    (its edges on the dome's inner flank). The smaller sigma keeps the low one; beyond
+    ``TAPER_AGREE`` sigmas of their difference its sigma grows to cover the other (0.124), so
+    the truth lies within 1.1 of it instead of 2.6 with the floor."""
+    profile_wise, once = (0.215, 0.0203, SPAN), (0.092, 0.0146, (-40.0, 45.0))
+    taper, sigma, span = bl._taper_of_two_sets(profile_wise, once, 0.02) or (math.nan, 0.0, SPAN)
+    assert (taper, span) == (0.092, (-40.0, 45.0))
+    assert sigma == math.hypot(0.0146, 0.215 - 0.092)
+    assert abs(0.222 - taper) / math.hypot(sigma, 0.02) < 1.1
+    assert abs(0.222 - 0.092) / math.hypot(0.0146, 0.02) > 2.5
