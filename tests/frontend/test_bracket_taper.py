@@ -355,7 +355,9 @@ def test_two_edge_sets_that_disagree_state_the_difference() -> None:
     ``TAPER_AGREE`` sigmas of their difference its sigma grows to cover the other (0.124), so
     the truth lies within 1.1 of it instead of 2.6 with the floor."""
     profile_wise, once = (0.215, 0.0203, SPAN), (0.092, 0.0146, (-40.0, 45.0))
-    taper, sigma, span = bl._taper_of_two_sets(profile_wise, once, 0.02) or (math.nan, 0.0, SPAN)
+    kept = bl._taper_of_two_sets(profile_wise, once, 0.02)
+    assert kept is not None
+    taper, sigma, span = kept
     assert (taper, span) == (0.092, (-40.0, 45.0))
     assert sigma == math.hypot(0.0146, 0.215 - 0.092)
     assert abs(0.222 - taper) / math.hypot(sigma, 0.02) < 1.1
