@@ -1901,6 +1901,14 @@ def _block_slope_sd(x: np.ndarray, width: np.ndarray, blocks: int = TAPER_BLOCKS
 # sigmas of the difference (each set's own sigma and the floor in quadrature)
 TAPER_AGREE = 3.0
 
+# `measure_taper`'s check of the kept edges: each side's foot, where the gradient magnitude
+# outside the edge has fallen to this fraction of the edge's (`_outer_feet`), ...
+TAPER_FOOT = 0.5
+# ... looked for up to this much beyond the edges' reach [px] (a blurred step's half-height
+# foot lies 1.18 blur sigmas outside it: 1.6 px at the 1.35 px of the detector's blur on a
+# rendered edge)
+TAPER_FOOT_PAD_PX = 3.0
+
 WidthLine = tuple[float, float, tuple[float, float]]
 
 
@@ -1922,11 +1930,19 @@ def _taper_of_two_sets(a: WidthLine | None, b: WidthLine | None, floor: float) -
     if not fits:
         return None
     best = min(fits, key=lambda f: f[1])
-    if a is not None and b is not None:
-        d = abs(a[0] - b[0])
-        if d > TAPER_AGREE * math.hypot(a[1], b[1], floor):
-            return (best[0], math.hypot(best[1], d), best[2])
-    return best
+    return _covering(best, b if best is a else a, floor)
+
+
+def _covering(kept: WidthLine, other: WidthLine | None, floor: float) -> WidthLine:
+    """``kept`` as it is where ``other`` (None: no fit) agrees with it: their tapers within
+    ``TAPER_AGREE`` times ``hypot(sigma_kept, sigma_other, floor)``; else with its sigma grown
+    to ``hypot(sigma, difference)``, a claim that covers the other's value."""
+    if other is None:
+        return kept
+    d = abs(kept[0] - other[0])
+    if d > TAPER_AGREE * math.hypot(kept[1], other[1], floor):
+        return (kept[0], math.hypot(kept[1], d), kept[2])
+    return kept
 
 
 def measure_taper(
@@ -1953,7 +1969,14 @@ def measure_taper(
     robust standard deviations), and the set whose widths lie on their line best (the
     smaller ``taper_sigma``) is kept; where the two disagree beyond their sigmas and the
     ``floor`` (the config's ``taper_floor``), its sigma grows to cover the other's taper
-    (`_taper_of_two_sets`). What changes the edges' offset from the silhouette
+    (`_taper_of_two_sets`). The kept taper is then checked against the widths between its
+    edges' feet (`_outer_feet`: outside each edge, where the gradient has fallen to
+    ``TAPER_FOOT`` of the edge's): where the shading moves the edges along a narrow strut
+    (a highlight that brightens along it) the feet keep to the limb, and where their taper
+    disagrees beyond ``TAPER_AGREE`` sigmas the kept sigma grows to cover it (`_covering`).
+    The feet's own taper is not reported: they lie about a blur outside the limb, which
+    compresses it (measured / true 0.83-0.90 on tuning members 0-35 against 1.01-1.21 for
+    the edges, docs/bracket.md). What changes the edges' offset from the silhouette
     (shading, a lit part only) is nearly the same all along a strut, so the *ratio* keeps
     the depth's. ``taper_sigma`` comes from the scatter of the widths about the line, or of
     the means of eight parts of the span about theirs where that is larger
@@ -1968,20 +1991,78 @@ def measure_taper(
     ss = np.arange(span[0], span[1] + 1e-9, 1.0)
     n = np.array([-strut.direction[1], strut.direction[0]])
     before, after = _taper_reach(blurred, strut, ss, n)
-    offs = np.arange(-before, after + 1e-9, 0.25)
-    rows = _cross_profiles(blurred, strut, ss, offs, n, cv2.INTER_CUBIC)
-    g = _profile_gradient(rows, float(offs[1] - offs[0]))
+    step = 0.25
+    offs = np.arange(-before, after + 1e-9, step)
+    # the profiles reach TAPER_FOOT_PAD_PX farther on each side for the feet
+    pad = round(TAPER_FOOT_PAD_PX / step)
+    offs_wide = np.arange(-before - pad * step, after + pad * step + 1e-9, step)
+    rows_wide = _cross_profiles(blurred, strut, ss, offs_wide, n, cv2.INTER_CUBIC)
+    g = _profile_gradient(rows_wide[:, pad : pad + len(offs)], step)
+    profile_wise_edges = _outer_edges(g, offs, TAPER_EDGE)
+    once_edges = _outer_edge_lines(g, offs, TAPER_EDGE, 0.25 * w + 2.0)
     profile_wise, once = (
-        _width_line(ss, edges[:, 1] - edges[:, 0], w)
-        for edges in (
-            _outer_edges(g, offs, TAPER_EDGE),
-            _outer_edge_lines(g, offs, TAPER_EDGE, 0.25 * w + 2.0),
-        )
+        _width_line(ss, edges[:, 1] - edges[:, 0], w) for edges in (profile_wise_edges, once_edges)
     )
     best = _taper_of_two_sets(profile_wise, once, floor)
     if best is None:
         return strut
+    # the widths between the edges' feet (`_outer_feet`): their taper is the silhouette's
+    # where the shading draws the edges along the strut; where the two disagree beyond
+    # their sigmas, the kept sigma covers the feet's taper
+    feet = _outer_feet(
+        _profile_gradient(rows_wide, step),
+        offs_wide,
+        np.where(np.isfinite(once_edges), once_edges, profile_wise_edges),
+        TAPER_FOOT,
+    )
+    best = _covering(best, _width_line(ss, feet[:, 1] - feet[:, 0], w), floor)
     return replace(strut, taper=best[0], taper_sigma=best[1], taper_span=best[2])
+
+
+def _outer_feet(g: np.ndarray, offs: np.ndarray, edges: np.ndarray, frac: float) -> np.ndarray:
+    """Per cross profile (``g`` its `_profile_gradient`, rows x samples at the evenly spaced
+    ``offs``), each side's *foot* (n, 2): from that side's edge ``edges`` (n, 2; its
+    gradient peak within 2 samples), outward to where the gradient magnitude first falls to
+    ``frac`` of the peak's, linearly interpolated; NaN where the edge is NaN or the profile
+    ends first.
+
+    A strut's gradient peak is where its shading is steepest, and on a narrow domed strut
+    that is inside the silhouette by an amount the shading sets: a specular core that
+    brightens along the strut steepens the inner flank and draws both peaks inward, so the
+    widths between the peaks shrink faster than the silhouette (bracket family tuning seed
+    98, frame 5: an 11 px base measured 2.5 px narrow at one end and 1.8 px at the other,
+    taper -0.25 for -0.10). The outer flank of the gradient is the limb's blurred step,
+    which that shading hardly moves: the widths between the feet overshoot the silhouette by
+    about the blur and keep its taper there (-0.11)."""
+    step = float(offs[1] - offs[0])
+    n, m = g.shape
+    r = np.arange(n)
+    idx = np.arange(m)
+    out = np.full((n, 2), np.nan)
+    if m < 5:
+        return out
+    for side in (0, 1):
+        e = edges[:, side]
+        found = np.isfinite(e)
+        k = np.round((np.where(found, e, offs[0]) - offs[0]) / step).astype(int)
+        k = np.clip(k, 2, m - 3)
+        near = np.stack([g[r, k + d] for d in (-2, -1, 0, 1, 2)], axis=1)
+        k = k + np.argmax(near, axis=1) - 2
+        thr = frac * g[r, k]
+        if side == 0:
+            below = (g <= thr[:, None]) & (idx[None, :] < k[:, None])
+            j = m - 1 - np.argmax(below[:, ::-1], axis=1)
+            inner = np.minimum(j + 1, m - 1)
+        else:
+            below = (g <= thr[:, None]) & (idx[None, :] > k[:, None])
+            j = np.argmax(below, axis=1)
+            inner = np.maximum(j - 1, 0)
+        ok = found & below[r, j]
+        hi, lo = g[r, inner], g[r, j]
+        t = np.where(hi > lo, (thr - lo) / np.where(hi > lo, hi - lo, 1.0), 0.0)
+        pos = j + t * (inner - j)
+        out[:, side] = np.where(ok, offs[0] + pos * step, np.nan)
+    return out
 
 
 def _width_line(ss: np.ndarray, width: np.ndarray, w: float) -> WidthLine | None:

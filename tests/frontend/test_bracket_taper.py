@@ -362,3 +362,88 @@ def test_two_edge_sets_that_disagree_state_the_difference() -> None:
     assert sigma == math.hypot(0.0146, 0.215 - 0.092)
     assert abs(0.222 - taper) / math.hypot(sigma, 0.02) < 1.1
     assert abs(0.222 - 0.092) / math.hypot(0.0146, 0.02) > 2.5
+
+
+def test_outer_feet_of_a_blurred_step_lie_at_its_half_height_gradient() -> None:
+    """A step at 0 (rising to the right at +-4.3 px: a bar 8.6 px wide) blurred by a
+    Gaussian of 1.3 px: `_profile_gradient` adds 0.5 px, so the gradient is a Gaussian of
+    hypot(1.3, 0.5) px on each side, and its half-height point lies
+    ``sqrt(2 ln 2)`` of that outside each step: within 0.02 px (linear interpolation
+    between samples 0.25 px apart)."""
+    sigma, half = 1.3, 4.3
+    offs = np.arange(-12.0, 12.0 + 1e-9, 0.25)
+    rows = np.array(
+        [
+            [
+                100.0 * (0.5 * (math.erf((x + half + d) / (sigma * math.sqrt(2))) + 1))
+                - 100.0 * (0.5 * (math.erf((x - half + d) / (sigma * math.sqrt(2))) + 1))
+                for x in offs
+            ]
+            for d in (0.0, 0.1, -0.13)
+        ]
+    )
+    g = bl._profile_gradient(rows, 0.25)
+    edges = bl._outer_edges(g, offs, bl.TAPER_EDGE)
+    feet = bl._outer_feet(g, offs, edges, 0.5)
+    out = math.sqrt(2 * math.log(2)) * math.hypot(sigma, 0.5)
+    for d, e, f in zip((0.0, 0.1, -0.13), edges, feet, strict=True):
+        assert np.allclose(e, [-half - d, half - d], atol=0.02), e
+        assert np.allclose(f, [-half - d - out, half - d + out], atol=0.02), (f, out)
+    # an edge without a finite position has no foot; a profile that ends first neither
+    assert np.isnan(bl._outer_feet(g, offs, np.full((3, 2), np.nan), 0.5)).all()
+    short = bl._outer_feet(g[:, 30:-30], offs[30:-30], edges, 0.5)
+    assert np.isnan(short).all(), short
+
+
+def core_lit_bar(w0: float, w1: float, core1: float) -> tuple[np.ndarray, bl.Strut]:
+    """`drawn_bar` shaded as a dome (45 DN background, 150 DN at its crest, falling as
+    ``sqrt(1 - u^2)`` to the limb) with a narrow specular core (a Gaussian of 0.35 half
+    widths) whose brightness grows from 0 to ``core1`` DN along the bar."""
+    s = 8
+    x = (np.arange(400 * s) + 0.5) / s - 0.5
+    core = core1 * np.clip((x - 40.0) / 320.0, 0, 1)[None, :]
+    img, strut = drawn_bar(w0, w1, lambda u: 45.0 + 150.0 * np.sqrt(1 - u**2), 45.0)
+    y = (np.arange(240 * s) + 0.5) / s - 0.5
+    X, Y = np.meshgrid(x, y)
+    u = (Y - 120.3) / (0.5 * (w0 + (w1 - w0) * np.clip((X - 40.0) / 320.0, 0, 1)))
+    inside = (np.abs(u) < 1) & (X >= 40.0) & (X <= 360.0)
+    big = np.where(inside, core * np.exp(-0.5 * (u / 0.35) ** 2), 0.0).astype(np.float32)
+    return img + cv2.resize(big, (400, 240), interpolation=cv2.INTER_AREA), strut
+
+
+def test_taper_of_a_bar_whose_highlight_brightens_along_it() -> None:
+    """A narrow domed bar (11 -> 10 px, taper -0.08) whose specular core brightens along it
+    (bracket family tuning seed 98, frame 5: the highlight 205 -> 226 DN along an 11 px
+    base): the steeper inner flank draws both gradient peaks inward more and more, so both
+    edge sets measure -0.18 with a sigma of 0.002 (5 sigmas off with the floor). The feet
+    (`_outer_feet`) keep to the limb (-0.09); beyond ``TAPER_AGREE`` sigmas of the
+    difference the kept sigma covers them, so the truth lies within 1.2 sigmas (1.07).
+    Without the highlight the taper and its sigma are the edges' (-0.08 within 0.005, sigma
+    < 0.01): the feet's own taper is compressed there (-0.06: they lie a blur outside the
+    limb on both sides), but within the agreement limit."""
+    floor = StrutDetectorConfig().taper_floor
+    img, strut = core_lit_bar(11.0, 10.0, 60.0)
+    st = bl.measure_taper(cv2.GaussianBlur(img, (0, 0), 1.8), strut)
+    true = true_taper(st, 11.0, 10.0)
+    assert abs(st.taper - true) > 0.08, st
+    assert abs(st.taper - true) / math.hypot(st.taper_sigma, floor) < 1.2, st
+    img, strut = core_lit_bar(11.0, 10.0, 0.0)
+    st = bl.measure_taper(cv2.GaussianBlur(img, (0, 0), 1.8), strut)
+    assert abs(st.taper - true_taper(st, 11.0, 10.0)) < 0.005, st
+    assert st.taper_sigma < 0.01, st
+
+
+def test_covering_grows_the_kept_sigma_only_beyond_agreement() -> None:
+    """Bracket family tuning seed 98, frame 5, the base (true taper -0.092): the kept edges
+    -0.237 +- 0.008, their feet -0.109 +- 0.008: 4.1 sigmas of the difference apart, so the
+    kept sigma grows to cover the feet (0.128) and the truth lies within 1.2 sigmas with the
+    floor instead of 6.7. Just inside the limit, or with no second fit, it stays."""
+    kept, feet = (-0.237, 0.008, SPAN), (-0.109, 0.008, SPAN)
+    taper, sigma, span = bl._covering(kept, feet, 0.02)
+    assert (taper, span) == (-0.237, SPAN)
+    assert sigma == math.hypot(0.008, 0.237 - 0.109)
+    assert abs(-0.092 - taper) / math.hypot(sigma, 0.02) < 1.2
+    assert abs(-0.092 - taper) / math.hypot(0.008, 0.02) > 6.5
+    limit = bl.TAPER_AGREE * math.hypot(0.008, 0.008, 0.02)
+    assert bl._covering(kept, (-0.237 + limit - 1e-6, 0.008, SPAN), 0.02) == kept
+    assert bl._covering(kept, None, 0.02) == kept
