@@ -2030,8 +2030,8 @@ def _outer_feet(g: np.ndarray, offs: np.ndarray, edges: np.ndarray, frac: float)
     that is inside the silhouette by an amount the shading sets: a specular core that
     brightens along the strut steepens the inner flank and draws both peaks inward, so the
     widths between the peaks shrink faster than the silhouette (bracket family tuning seed
-    98, frame 5: an 11 px base measured 2.5 px narrow at one end and 1.8 px at the other,
-    taper -0.25 for -0.10). The outer flank of the gradient is the limb's blurred step,
+    98, frame 5: an 11-12 px base measured 2.5 px narrow at one end and 3.0 px at the
+    other, taper -0.24 for -0.09). The outer flank of the gradient is the limb's blurred step,
     which that shading hardly moves: the widths between the feet overshoot the silhouette by
     about the blur and keep its taper there (-0.11)."""
     step = float(offs[1] - offs[0])
