@@ -61,19 +61,23 @@ def test_silhouette_width_matches_the_closed_form_and_a_brute_force_projection()
 
 
 def drawn_bar(
-    w0: float, w1: float, shade: Callable[[np.ndarray], np.ndarray], background: float
+    w0: float,
+    w1: float,
+    shade: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    background: float,
 ) -> tuple[np.ndarray, bl.Strut]:
     """A bar from x = 40 to x = 360 at y = 120.3 whose width grows linearly from ``w0`` to
-    ``w1`` px, its brightness ``shade(u)`` at ``u`` in (-1, 1) across it, on ``background``,
-    drawn at 8x and box-filtered; with the strut candidate a detector would give (its centre
-    line, mean width, extent)."""
+    ``w1`` px, its brightness ``shade(u, f)`` at ``u`` in (-1, 1) across it and the fraction
+    ``f`` of its length along it, on ``background``, drawn at 8x and box-filtered; with the
+    strut candidate a detector would give (its centre line, mean width, extent)."""
     s = 8
     y = (np.arange(240 * s) + 0.5) / s - 0.5
     x = (np.arange(400 * s) + 0.5) / s - 0.5
     X, Y = np.meshgrid(x, y)
-    u = (Y - 120.3) / (0.5 * (w0 + (w1 - w0) * (X - 40.0) / 320.0))
+    f = (X - 40.0) / 320.0
+    u = (Y - 120.3) / (0.5 * (w0 + (w1 - w0) * f))
     inside = (np.abs(u) < 1) & (X >= 40.0) & (X <= 360.0)
-    big = np.where(inside, shade(np.clip(u, -1, 1)), background).astype(np.float32)
+    big = np.where(inside, shade(np.clip(u, -1, 1), f), background).astype(np.float32)
     strut = bl.Strut(
         point=np.array([40.0, 120.3]),
         direction=np.array([1.0, 0.0]),
@@ -88,7 +92,7 @@ def drawn_bar(
 
 def tapered_bar(w0: float, w1: float, noise: float, seed: int) -> tuple[np.ndarray, bl.Strut]:
     """`drawn_bar` uniformly bright (200 DN on 20) with read noise ``noise`` DN."""
-    img, strut = drawn_bar(w0, w1, lambda u: np.full_like(u, 200.0), 20.0)
+    img, strut = drawn_bar(w0, w1, lambda u, f: np.full_like(u, 200.0), 20.0)
     img = img + np.random.default_rng(seed).normal(0.0, noise, img.shape)
     return np.clip(img, 0, 255).astype(np.float32), strut
 
@@ -99,7 +103,7 @@ def side_lit_bar(w0: float, w1: float, sun_deg: float) -> tuple[np.ndarray, bl.S
     brightest part is off its centre and one limb is only 20 DN above the background."""
     sun = math.radians(sun_deg)
 
-    def shade(u: np.ndarray) -> np.ndarray:
+    def shade(u: np.ndarray, f: np.ndarray) -> np.ndarray:
         lit = np.clip(-u * math.sin(sun) + np.sqrt(1 - u**2) * math.cos(sun), 0, None)
         return 20.0 + 200.0 * lit
 
@@ -399,16 +403,11 @@ def core_lit_bar(w0: float, w1: float, core1: float) -> tuple[np.ndarray, bl.Str
     """`drawn_bar` shaded as a dome (45 DN background, 150 DN at its crest, falling as
     ``sqrt(1 - u^2)`` to the limb) with a narrow specular core (a Gaussian of 0.35 half
     widths) whose brightness grows from 0 to ``core1`` DN along the bar."""
-    s = 8
-    x = (np.arange(400 * s) + 0.5) / s - 0.5
-    core = core1 * np.clip((x - 40.0) / 320.0, 0, 1)[None, :]
-    img, strut = drawn_bar(w0, w1, lambda u: 45.0 + 150.0 * np.sqrt(1 - u**2), 45.0)
-    y = (np.arange(240 * s) + 0.5) / s - 0.5
-    X, Y = np.meshgrid(x, y)
-    u = (Y - 120.3) / (0.5 * (w0 + (w1 - w0) * np.clip((X - 40.0) / 320.0, 0, 1)))
-    inside = (np.abs(u) < 1) & (X >= 40.0) & (X <= 360.0)
-    big = np.where(inside, core * np.exp(-0.5 * (u / 0.35) ** 2), 0.0).astype(np.float32)
-    return img + cv2.resize(big, (400, 240), interpolation=cv2.INTER_AREA), strut
+
+    def shade(u: np.ndarray, f: np.ndarray) -> np.ndarray:
+        return 45.0 + 150.0 * np.sqrt(1 - u**2) + core1 * f * np.exp(-0.5 * (u / 0.35) ** 2)
+
+    return drawn_bar(w0, w1, shade, 45.0)
 
 
 def test_taper_of_a_bar_whose_highlight_brightens_along_it() -> None:
