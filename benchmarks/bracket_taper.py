@@ -9,21 +9,24 @@ projected true axis: the base ``P1P2`` and the visible stubs), their taper is me
 (`predicted_taper`, the exact silhouette widths). Writes docs/results/bracket_taper.md: the
 error by strut width (median and 90th / 95th percentile of its size, mean, robust spread,
 and the median ratio measured / true where the true taper exceeds 0.05: below 1 the
-measurement compresses it), and, for the struts that `_verify` weighs (at least
-``taper_min_width_px`` wide), the errors over their stated sigma with the noise floor
-``taper_floor`` (and neighbouring floors): what sets the floor and the cap ``max_taper_chi``
-(docs/bracket.md, "Strut taper").
+measurement compresses it), and, by strut width, the errors over the sigma they are
+weighed with (`taper_noise`: the stated sigma and the width's noise floor, ``taper_floor``
+and ``taper_floor_px2``) against alternative floors: what sets the floor, the cap
+``max_taper_chi`` and ``taper_min_width_px`` (docs/bracket.md, "Strut taper").
 
 Only tuning seeds: this is where the floor was chosen. Usage::
 
-    python benchmarks/bracket_taper.py [--seeds 0-35]
+    python benchmarks/bracket_taper.py [--seeds 0-99]
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import multiprocessing
 import sys
+from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -81,16 +84,34 @@ def measure(m: BracketMember) -> list[tuple[float, ...]]:
     return rows
 
 
+def seed_rows(seed: int, root: Path) -> list[tuple[float, ...]]:
+    """`measure` of the member ``seed`` under ``root`` (rendered there if missing)."""
+    return [row for _, m in bracket_members([seed], root) for row in measure(m)]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", type=tuning_seeds, default=tuning_seeds("0-35"))
+    ap.add_argument("--seeds", type=tuning_seeds, default=tuning_seeds("0-99"))
     ap.add_argument("--root", type=Path, default=Path("runs/bench/bracket-family"))
     ap.add_argument("--out", type=Path, default=Path("docs/results/bracket_taper.md"))
+    ap.add_argument(
+        "--jobs", type=int, default=1, help="members measured at once, each in its own process"
+    )
     args = ap.parse_args(argv)
+    if args.jobs < 1:
+        ap.error(f"--jobs {args.jobs}: must be >= 1")
+    job = partial(seed_rows, root=args.root)
     rows: list[tuple[float, ...]] = []
-    for seed, member in bracket_members(args.seeds, args.root):
-        rows += measure(member)
-        print(seed, len(rows), flush=True)
+    if args.jobs == 1:
+        for seed in args.seeds:
+            rows += job(seed)
+            print(seed, len(rows), flush=True)
+    else:  # fresh interpreters: no state inherited between members
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx) as pool:
+            for seed, got in zip(args.seeds, pool.map(job, args.seeds), strict=True):
+                rows += got
+                print(seed, len(rows), flush=True)
     R = np.array(rows, dtype=float)
     cfg = StrutDetectorConfig()
     lines = [
@@ -128,27 +149,44 @@ def main(argv: list[str] | None = None) -> int:
                 f"{ratio:.2f} |"
             )
         lines.append("")
-    S = R[(R[:, 0] == 1) & (R[:, 2] >= cfg.taper_min_width_px)]
-    d = S[:, 3] - S[:, 4]
+    S = R[R[:, 0] == 1]
     lines += [
-        f"## The weighed struts (after the refit, >= {cfg.taper_min_width_px:g} px wide: "
-        f"{len(S)}): error over hypot(stated sigma, floor)",
+        "## The errors over the weighed sigma (after the refit), by strut width",
         "",
-        f"Median stated sigma (the fit's own, `measure_taper`): {np.median(S[:, 5]):.4f}. "
-        f"The default floor is `taper_floor` = {cfg.taper_floor:g}; a misfit counts as at "
-        f"most `max_taper_chi` = {cfg.max_taper_chi:g} sigmas (a truncated square): a "
-        "Gaussian has 4.6 % beyond 2 sigmas and 0.27 % beyond 3.",
+        f"Weighed sigma: the stated one (the fit's own, `measure_taper`; median "
+        f"{np.median(S[:, 5]):.4f}) and the floor of the strut's width `w` in quadrature "
+        f"(`taper_noise`): max(`taper_floor` = {cfg.taper_floor:g}, `taper_floor_px2` / w^2 "
+        f"= {cfg.taper_floor_px2:g} / w^2). Struts under `taper_min_width_px` = "
+        f"{cfg.taper_min_width_px:g} px are not weighed (shown for reference). A misfit counts "
+        f"as at most `max_taper_chi` = {cfg.max_taper_chi:g} sigmas (a truncated square). "
+        "Each cell: rms / beyond 2 sigmas / beyond 3 sigmas (a Gaussian: 1 / 4.6 % / 0.27 %); "
+        "the other columns are the alternatives the default was chosen against.",
         "",
-        "| floor | rms | robust sd | beyond 2 | beyond 3 |",
-        "|---|---|---|---|---|",
     ]
-    for fl in sorted({0.015, 0.02, 0.025, 0.03, 0.04, cfg.taper_floor}):
-        z = d / np.hypot(S[:, 5], fl)
-        lines.append(
-            f"| {fl:g}{' (default)' if fl == cfg.taper_floor else ''} | "
-            f"{np.sqrt(np.mean(z**2)):.2f} | {1.4826 * np.median(np.abs(z)):.2f} | "
-            f"{np.mean(np.abs(z) > 2):.1%} | {np.mean(np.abs(z) > 3):.1%} |"
-        )
+    laws = [(cfg.taper_floor, cfg.taper_floor_px2, "default")]
+    laws += [(cfg.taper_floor, c, f"{c:g} / w^2") for c in (2.0, 3.0)]
+    laws += [(f, 0.0, f"constant {f:g}") for f in (0.02, 0.04)]
+    lines += [
+        "| width px | n | " + " | ".join(name for *_, name in laws) + " |",
+        "|---|---|" + "---|" * len(laws),
+    ]
+    bands = ((5, 6), (6, 7), (7, 8), (8, 9), (9, 10), (10, 13), (13, 17), (17, 1e9))
+    for lo, hi in [*bands, (cfg.taper_min_width_px, 1e9)]:
+        m = (S[:, 2] >= lo) & (S[:, 2] < hi)
+        if not m.any():
+            continue
+        d, sig, w = S[m, 3] - S[m, 4], S[m, 5], S[m, 2]
+        cells = []
+        for f0, c, _ in laws:
+            z = d / np.hypot(sig, np.maximum(f0, c / w**2))
+            cells.append(
+                f"{np.sqrt(np.mean(z**2)):.2f} / {np.mean(np.abs(z) > 2):.1%} / "
+                f"{np.mean(np.abs(z) > 3):.1%}"
+            )
+        label = f"{lo:g}-{hi:g}" if hi < 1e9 else f">= {lo:g}"
+        if (lo, hi) == (cfg.taper_min_width_px, 1e9):
+            label = f"**all weighed (>= {lo:g})**"
+        lines.append(f"| {label} | {int(m.sum())} | " + " | ".join(cells) + " |")
     write_page(args.out, "\n".join(lines) + "\n")
     return 0
 

@@ -128,18 +128,25 @@ class StrutDetectorConfig:
         width_spread_gate: a hypothesis whose strut widths spread further than this (log
             ratio to their mean) is rejected: a factor 2 between a strut's lit fraction and
             the mean of the three.
-        taper_floor: the noise of a strut's taper (`measure_taper`) that its own scatter does
-            not show, added in quadrature (a shaded limb, the lit part of a side-lit strut and
-            the blur change a little along a strut): the spread of measured minus true tapers
-            on the bracket family's tuning seeds (docs/bracket.md, "Strut taper").
+        taper_floor: the noise of a wide strut's taper (`measure_taper`) that its own scatter
+            does not show, added in quadrature (a shaded limb, the lit part of a side-lit strut
+            and the blur change a little along a strut): the spread of measured minus true
+            tapers on the bracket family's tuning seeds (docs/bracket.md, "Strut taper").
+        taper_floor_px2: below ``sqrt(taper_floor_px2 / taper_floor)`` px (11 px) the floor is
+            ``taper_floor_px2 / w**2`` for a strut ``w`` px wide (`taper_noise`): the blur
+            merges a narrow strut's edges, so its taper's error grows faster than ``1 / w``.
+            Fitted on the tuning seeds 0-99 so that the measured minus true tapers over their
+            sigma have an rms of 1 in every width band from 5 to 10 px (0.94-1.07; 2.0 px^2
+            left the 6-9 px bands at 1.2-1.3, 3.0 px^2 at 0.90-0.94; a constant 0.02 had
+            1.3-2.1 and 6-14 % beyond 3 sigmas below 9 px).
         max_taper_chi: a strut's taper misfit counts as at most this many sigmas (a truncated
             square, in the single frame's verification and in the fits of
             `PartialImageModel`: an outlying measurement, e.g. a cell line along a strut,
             cannot veto the true pose; what tells the poses apart is the sum over struts and
             frames).
         taper_min_width_px: a strut narrower than this [px] has its taper ignored: there the
-            blur merges its two edges and the measured taper is compressed (half the true one
-            at 5 px on the family's tuning seeds).
+            blur merges its two edges and the measured taper is compressed (two thirds of the
+            true one at 5-6 px on the family's tuning seeds 0-99, 1.0-1.2 from 6 px up).
         use_taper: weigh the struts' tapers (with a known ``strut_radius_m``); False: the
             hypotheses are verified and weighed as before the taper was measured.
         gate_deg, gate_rel: tracking: a pose farther than ``gate_deg`` in attitude or
@@ -177,8 +184,9 @@ class StrutDetectorConfig:
     max_width_spread: float = 0.35
     width_spread_gate: float = 0.7
     taper_floor: float = 0.02
+    taper_floor_px2: float = 2.5
     max_taper_chi: float = 3.0
-    taper_min_width_px: float = 8.0
+    taper_min_width_px: float = 6.0
     use_taper: bool = True
     gate_deg: float = 15.0
     gate_rel: float = 0.25
@@ -921,7 +929,7 @@ def _verify(
             pred_t = predicted_taper(strut, pose, (v[i], v[j]), K, radius_m)
             if not math.isfinite(pred_t):
                 return math.inf, "a strut's axis behind the camera"
-            e = (strut.taper - pred_t) / math.hypot(strut.taper_sigma, cfg.taper_floor)
+            e = (strut.taper - pred_t) / taper_noise(strut, cfg)
             cost += float(_truncated_whitened(np.asarray(e), cfg.max_taper_chi) ** 2)
     return cost, ""
 
@@ -929,6 +937,15 @@ def _verify(
 def _taper_used(strut: Strut, cfg: StrutDetectorConfig) -> bool:
     """Whether `_verify` weighs ``strut``'s taper: measured, wide enough, and switched on."""
     return cfg.use_taper and math.isfinite(strut.taper) and strut.width_px >= cfg.taper_min_width_px
+
+
+def taper_noise(strut: Strut, cfg: StrutDetectorConfig) -> float:
+    """The sigma with which ``strut``'s taper is weighed: its own (``taper_sigma``) and the
+    floor of its width in quadrature, the floor ``max(taper_floor, taper_floor_px2 / w**2)``
+    (`StrutDetectorConfig`)."""
+    w = float(strut.width_px)
+    floor = max(cfg.taper_floor, cfg.taper_floor_px2 / w**2) if w > 0 else math.inf
+    return math.hypot(strut.taper_sigma, floor)
 
 
 def _pose_distance(a: Rigid3, b: Rigid3, centre: np.ndarray | None = None) -> tuple[float, float]:
@@ -1032,7 +1049,7 @@ class PartialImageModel:
     `partial_image_quantities`, noise ``sigma_px`` per vertex coordinate, ``sigma_dir_rad``
     per strut direction and the verification's ``end_sigma_px + end_sigma_rel * length`` per
     stub length; then the struts' tapers (`measure_taper`), ``(taper - predicted(T)) /
-    hypot(taper_sigma, taper_floor)`` clipped at ``taper_cap`` (``max_taper_chi``: the
+    taper_noise`` clipped at ``taper_cap`` (``max_taper_chi``: the
     truncated square of the single frame's verification, `_truncated_whitened`).
     ``residual_and_jacobian`` is what a smoother needs to
     weigh the image itself (not a Gaussian approximation of the pose) against the motion
@@ -1069,7 +1086,7 @@ class PartialImageModel:
                     tapers.append(
                         TaperMeasurement(
                             value=st.taper,
-                            sigma=math.hypot(st.taper_sigma, config.taper_floor),
+                            sigma=taper_noise(st, config),
                             px=np.array([st.point + s * st.direction for s in st.taper_span]),
                             axis=axis,
                             radius_m=config.strut_radius_m,
@@ -1088,6 +1105,18 @@ class PartialImageModel:
     @property
     def dim(self) -> int:
         return len(self.z) + len(self.tapers)
+
+    @property
+    def shared_groups(self) -> tuple[int, ...]:
+        """Per residual: -1 for the quantities ``z``, the strut (0 base, 1 from P1, 2 from
+        P2: `STRUT_AXES`) for its taper, measured through the same shading and blur in
+        every frame (`satpose.backend.labelling.fit_track`)."""
+        return (-1,) * len(self.z) + tuple(STRUT_AXES.index(m.axis) for m in self.tapers)
+
+    @property
+    def shared_cap(self) -> float:
+        """The tapers' truncation (``taper_cap``) for `satpose.backend.labelling.fit_track`."""
+        return self.taper_cap
 
     @cached_property
     def _taper_arrays(
