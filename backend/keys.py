@@ -11,6 +11,9 @@
   the two cameras see the rim's edge profile differently (a wall, a shadow's sliver, a glint
   seen from two viewpoints), a bias that averaging over frames does not remove
   (`satpose.backend.factors.ring_factor`).
+- ``SHARED_BIAS``: the biases (one per group, a vector) that a track's image quantities of one
+  group share over all its frames, in their sigmas (e.g. a strut's taper, measured through the
+  same shading and blur in every frame; `satpose.backend.labelling.fit_track`).
 - ``RIG``: the right camera's pose in the left camera's frame as the landmarks' right-image
   observations see it (Pose3): the calibrated ``left_from_right`` with its yaw free within a
   prior, i.e. a disparity error common to every landmark (a rig whose cameras turned against
@@ -32,6 +35,7 @@ __all__ = [
     "RADIUS_CHAR",
     "RIG",
     "RIG_CHAR",
+    "SHARED_BIAS",
     "TWIST_CHAR",
     "L",
     "R",
@@ -43,6 +47,8 @@ RADIUS = R(0)
 """The first circle's radius."""
 DISPARITY_BIAS = gtsam.symbol("d", 0)
 """The ring edges' common disparity bias [px]."""
+SHARED_BIAS = gtsam.symbol("s", 0)
+"""A track's per-group image biases (`satpose.backend.labelling.fit_track`)."""
 RIG = gtsam.symbol("c", 0)
 """The rig's ``left_from_right`` as the landmarks see it."""
 

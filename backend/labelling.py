@@ -42,7 +42,7 @@ from scipy.stats import chi2
 
 from satpose.backend.errors import BackendError
 from satpose.backend.factors import MeasurementConfig, pose_factor
-from satpose.backend.keys import V, X
+from satpose.backend.keys import SHARED_BIAS, V, X
 from satpose.backend.motion import (
     MotionConfig,
     constant_twist_factor,
@@ -66,6 +66,19 @@ class ImageResidual(Protocol):
 
     @property
     def dim(self) -> int: ...
+
+    @property
+    def shared_groups(self) -> tuple[int, ...]:
+        """Per residual, the group (0, 1, ...) whose members share a bias over the frames
+        of a track (the same quantity measured the same way in every frame: a strut's
+        taper), or -1 (independent)."""
+        ...
+
+    @property
+    def shared_cap(self) -> float:
+        """The largest whitened misfit a grouped quantity counts with (its residuals are
+        truncated there: a truncated square)."""
+        ...
 
     def residual_and_jacobian(self, pose: Rigid3) -> tuple[np.ndarray, np.ndarray]: ...
 
@@ -147,6 +160,12 @@ class LabellingConfig:
         reach_back: a track that starts after the first frame is also carried back over the
             earlier frames whose measured quantities its backward prediction explains (the
             fit gate); False: tracks run forward only (the behaviour before).
+        shared_variance: the part of a grouped image residual's variance (``shared_groups``:
+            a strut's taper) that all frames of a track share (`fit_track`'s bias per group);
+            the rest is independent between frames. 0: every frame independent (the
+            behaviour before). The intraclass correlation of the measured minus true tapers
+            over their weighed sigma, per strut and member, on the bracket family's tuning
+            seeds 0-99 (docs/bracket.md, "Strut taper").
     """
 
     motion: MotionConfig = field(
@@ -166,6 +185,7 @@ class LabellingConfig:
     max_tracks: int = 16
     max_gap: int = 3
     reach_back: bool = True
+    shared_variance: float = 0.55
 
     def __post_init__(self) -> None:
         for name in ("log_lr_threshold", "miss_cost", "gate_deg", "gate_rel"):
@@ -177,6 +197,10 @@ class LabellingConfig:
         if not 0.0 < self.fit_gate_quantile < 1.0:
             raise BackendError(
                 f"labelling.fit_gate_quantile must be in (0, 1), got {self.fit_gate_quantile}"
+            )
+        if not 0.0 <= self.shared_variance < 1.0:
+            raise BackendError(
+                f"labelling.shared_variance must be in [0, 1), got {self.shared_variance}"
             )
         if self.max_tracks < 2 or self.max_gap < 0:
             raise BackendError("labelling.max_tracks must be >= 2 and max_gap >= 0")
@@ -193,18 +217,61 @@ class TrackFit:
     twists: np.ndarray
 
 
-def image_factor(i: int, model: ImageResidual) -> gtsam.CustomFactor:
+def image_factor(i: int, model: ImageResidual, shared: float = 0.0) -> gtsam.CustomFactor:
     """The frame's measured quantities on ``X(i)`` (whitened: unit noise). The graph stores
-    ``X = T^-1``; ``X Exp(d)`` is ``T Exp(-Ad_X d)`` (`state_to_pose_jacobian`)."""
+    ``X = T^-1``; ``X Exp(d)`` is ``T Exp(-Ad_X d)`` (`state_to_pose_jacobian`).
 
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
+    ``shared`` > 0 (a fraction of the variance) and grouped residuals (``shared_groups``):
+    the factor is also on ``SHARED_BIAS`` ``b`` and a grouped residual ``r`` becomes
+    ``(r - b[group]) / sqrt(1 - shared)``: the group's bias common to the track's frames
+    (its prior, variance ``shared``, is `fit_track`'s), the rest independent; truncated at
+    ``shared_cap`` like ``r`` itself, so an outlying frame counts at most that many sigmas
+    whatever the bias."""
+    groups = np.asarray(model.shared_groups, dtype=int)
+    rows = np.flatnonzero(groups >= 0)
+    if shared <= 0.0 or rows.size == 0:
+
+        def error(
+            this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None
+        ) -> Any:
+            X_i = values.atPose3(this.keys()[0])
+            r, J = model.residual_and_jacobian(from_state(X_i))
+            if H is not None:
+                H[0] = np.asfortranarray(J @ state_to_pose_jacobian(X_i))
+            return r
+
+        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(model.dim), [X(i)], error)
+    if int(groups.max()) >= SHARED_GROUPS:
+        raise BackendError(f"image_factor: shared group {groups.max()} >= {SHARED_GROUPS}")
+    scale = np.where(groups >= 0, 1.0 / math.sqrt(1.0 - shared), 1.0)
+    cap = float(model.shared_cap)
+
+    def error_shared(
+        this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None
+    ) -> Any:
         X_i = values.atPose3(this.keys()[0])
+        b = values.atVector(this.keys()[1])
         r, J = model.residual_and_jacobian(from_state(X_i))
+        r = np.array(r, dtype=float)
+        r[rows] -= b[groups[rows]]
+        r = scale * r
+        live = np.abs(r) <= cap  # beyond the cap the truncated square is flat
         if H is not None:
-            H[0] = np.asfortranarray(J @ state_to_pose_jacobian(X_i))
-        return r
+            Jx = np.where(live[:, None], scale[:, None] * J, 0.0)
+            H[0] = np.asfortranarray(Jx @ state_to_pose_jacobian(X_i))
+            Hb = np.zeros((len(r), SHARED_GROUPS))
+            Hb[rows, groups[rows]] = np.where(live[rows], -scale[rows], 0.0)
+            H[1] = np.asfortranarray(Hb)
+        return np.clip(r, -cap, cap)
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(model.dim), [X(i)], error)
+    return gtsam.CustomFactor(
+        gtsam.noiseModel.Unit.Create(model.dim), [X(i), SHARED_BIAS], error_shared
+    )
+
+
+# the length of a track's ``SHARED_BIAS`` vector: groups 0 .. SHARED_GROUPS - 1 (the
+# bracket's three struts)
+SHARED_GROUPS = 3
 
 
 def fit_track(
@@ -212,12 +279,19 @@ def fit_track(
     candidates: list[Candidate],
     motion: MotionConfig,
     initial: tuple[list[Rigid3], np.ndarray] | None = None,
+    shared: float = 0.0,
 ) -> TrackFit:
     """Batch fit of the constant-twist prior to one candidate per frame: each frame's
     measured quantities (``image``) or, without them, its pose as a Gaussian prior (no
     robust kernel: the error is a likelihood). ``t_s`` increasing [s]; ``initial`` (poses,
     twists) warm start, else the candidates' poses and finite-difference twists. Degrees of
-    freedom: the residuals' (``image.dim`` or 6 per frame) minus 6."""
+    freedom: the residuals' (``image.dim`` or 6 per frame) minus 6.
+
+    ``shared`` > 0: the images' grouped residuals (``shared_groups``) share a bias per group
+    over the track's frames (`image_factor`): a vector ``SHARED_BIAS`` with a zero-mean
+    prior of variance ``shared`` (as many prior residuals as unknowns: the degrees of
+    freedom do not change). A bias that every frame shows is then evidence once, not once
+    per frame."""
     n = len(candidates)
     if n == 0 or len(t_s) != n:
         raise BackendError(f"fit_track: {len(t_s)} times for {n} candidates")
@@ -234,9 +308,21 @@ def fit_track(
         start = T
     else:
         start, twists = initial
+    groups = [g for c in candidates if c.image is not None for g in c.image.shared_groups]
+    if max(groups, default=-1) < 0:
+        shared = 0.0
+    if shared > 0.0:
+        values.insert(SHARED_BIAS, np.zeros(SHARED_GROUPS))
+        graph.add(
+            gtsam.PriorFactorVector(
+                SHARED_BIAS,
+                np.zeros(SHARED_GROUPS),
+                gtsam.noiseModel.Isotropic.Sigma(SHARED_GROUPS, math.sqrt(shared)),
+            )
+        )
     for i, c in enumerate(candidates):
         if c.image is not None:
-            graph.add(image_factor(i, c.image))
+            graph.add(image_factor(i, c.image, shared))
         else:
             graph.add(pose_factor(c.pose, i, _GAUSSIAN))
         values.insert(X(i), to_state(start[i]))
@@ -362,7 +448,7 @@ class SequenceLabeller:
                 np.vstack([parent.fit.twists, parent.fit.twists[-1:]]),
             )
         self.fits += 1
-        return fit_track(t, cands, self.config.motion, init)
+        return fit_track(t, cands, self.config.motion, init, self.config.shared_variance)
 
     def _image_cost(self, picks: dict[int, int]) -> float:
         return sum(
@@ -544,6 +630,7 @@ class SequenceLabeller:
                     [self.candidates[i][picks[i]] for i in ks],
                     cfg.motion,
                     init,
+                    cfg.shared_variance,
                 )
                 if 2.0 * (fit.error - at.fit.error) > self._fit_gate(c.image.dim):
                     continue
