@@ -165,8 +165,8 @@ class LabellingConfig:
             whitened units, on top of each frame's own unit variance (`fit_track`). 0: every
             frame independent (the behaviour before). The variance between struts and members
             of the mean measured minus true taper over its weighed sigma, on the bracket
-            family's tuning seeds 0-99: 0.50, against 0.41 within (docs/bracket.md, "Strut
-            taper"). Each frame keeps its full weight (not the 0.41 measured), so a track
+            family's tuning seeds 0-99: 0.51, against 0.39 within (docs/bracket.md, "Strut
+            taper"). Each frame keeps its full weight (not the 0.39 measured), so a track
             never costs more than with independent frames: a bias that every frame shows
             is evidence about once, and a misfit that changes from frame to frame counts as
             before.

@@ -34,6 +34,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import BracketMember, bracket_members, machine_summary, tuning_seeds, write_page
 
+from satpose.backend.labelling import LabellingConfig
 from satpose.frontend.bracket import project
 from satpose.frontend.bracket_lines import (
     StrutDetectorConfig,
@@ -84,9 +85,48 @@ def measure(m: BracketMember) -> list[tuple[float, ...]]:
     return rows
 
 
+def shared_section(S: np.ndarray, cfg: StrutDetectorConfig) -> list[str]:
+    """How much of the weighed struts' error (rows ``S`` after the refit, at least
+    ``taper_min_width_px`` wide, over the weighed sigma) one strut of one member shares over
+    its frames: one-way analysis of variance over the groups (member, strut) with at least 3
+    frames. What sets ``LabellingConfig.shared_variance``."""
+    w = S[:, 2]
+    S = S[w >= cfg.taper_min_width_px]
+    z = (S[:, 3] - S[:, 4]) / np.hypot(
+        S[:, 5], np.maximum(cfg.taper_floor, cfg.taper_floor_px2 / S[:, 2] ** 2)
+    )
+    keys = S[:, 6] * 10 + S[:, 1]
+    groups = [z[keys == k] for k in np.unique(keys)]
+    groups = [g for g in groups if len(g) >= 3]
+    n = np.array([len(g) for g in groups], dtype=float)
+    within = float(sum(((g - g.mean()) ** 2).sum() for g in groups) / (n.sum() - len(groups)))
+    means = np.array([g.mean() for g in groups])
+    between = float(means.var(ddof=1) - within * np.mean(1.0 / n))
+    return [
+        "",
+        "## What a strut's frames share",
+        "",
+        f"The weighed struts' errors over their weighed sigma, grouped by member and strut "
+        f"({len(groups)} groups of at least 3 frames, median {np.median(n):.0f} frames; "
+        "one-way analysis of variance): the variance *within* a group (from frame to frame) "
+        "and *between* groups (a bias the strut shows in every frame of its member), and "
+        "their ratio to the total (intraclass correlation). A track's tapers are fitted with "
+        "a bias per strut of variance `LabellingConfig.shared_variance` = "
+        f"{LabellingConfig().shared_variance:g} on top of each frame's unit variance "
+        '(docs/bracket.md, "Strut taper").',
+        "",
+        "| within | between | intraclass correlation | sd of the group means (independent frames: "
+        "sqrt(mean 1/n)) |",
+        "|---|---|---|---|",
+        f"| {within:.2f} | {between:.2f} | {between / (between + within):.2f} | "
+        f"{means.std(ddof=1):.2f} ({np.sqrt(np.mean(1.0 / n)):.2f}) |",
+    ]
+
+
 def seed_rows(seed: int, root: Path) -> list[tuple[float, ...]]:
-    """`measure` of the member ``seed`` under ``root`` (rendered there if missing)."""
-    return [row for _, m in bracket_members([seed], root) for row in measure(m)]
+    """`measure` of the member ``seed`` under ``root`` (rendered there if missing), each row
+    with the seed appended."""
+    return [(*row, float(seed)) for _, m in bracket_members([seed], root) for row in measure(m)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -187,6 +227,7 @@ def main(argv: list[str] | None = None) -> int:
         if (lo, hi) == (cfg.taper_min_width_px, 1e9):
             label = f"**all weighed (>= {lo:g})**"
         lines.append(f"| {label} | {int(m.sum())} | " + " | ".join(cells) + " |")
+    lines += shared_section(S, cfg)
     write_page(args.out, "\n".join(lines) + "\n")
     return 0
 
