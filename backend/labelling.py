@@ -169,7 +169,9 @@ class LabellingConfig:
             taper"). Each frame keeps its full weight (not the 0.39 measured), so a track
             never costs more than with independent frames: a bias that every frame shows
             is evidence about once, and a misfit that changes from frame to frame counts as
-            before.
+            before. 0.5 is not the default: on tuning 76-99 it lost more frames than it
+            gained (docs/bracket.md, "Narrow struts' tapers and a bias their frames
+            share").
     """
 
     motion: MotionConfig = field(
@@ -189,7 +191,7 @@ class LabellingConfig:
     max_tracks: int = 16
     max_gap: int = 3
     reach_back: bool = True
-    shared_variance: float = 0.5
+    shared_variance: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("log_lr_threshold", "miss_cost", "gate_deg", "gate_rel"):

@@ -85,16 +85,20 @@ def measure(m: BracketMember) -> list[tuple[float, ...]]:
     return rows
 
 
+# the narrow-strut setting the shared bias was measured in: ``taper_floor_px2`` 2.5 px^2 and
+# struts from 6 px (docs/bracket.md, "Narrow struts' tapers and a bias their frames share")
+NARROW_FLOOR_PX2, NARROW_MIN_WIDTH_PX = 2.5, 6.0
+
+
 def shared_section(S: np.ndarray, cfg: StrutDetectorConfig) -> list[str]:
-    """How much of the weighed struts' error (rows ``S`` after the refit, at least
-    ``taper_min_width_px`` wide, over the weighed sigma) one strut of one member shares over
-    its frames: one-way analysis of variance over the groups (member, strut) with at least 3
-    frames. What sets ``LabellingConfig.shared_variance``."""
-    w = S[:, 2]
-    S = S[w >= cfg.taper_min_width_px]
-    z = (S[:, 3] - S[:, 4]) / np.hypot(
-        S[:, 5], np.maximum(cfg.taper_floor, cfg.taper_floor_px2 / S[:, 2] ** 2)
-    )
+    """How much of the struts' error (rows ``S`` after the refit, at least
+    ``NARROW_MIN_WIDTH_PX`` wide, over the sigma with the ``NARROW_FLOOR_PX2`` floor) one
+    strut of one member shares over its frames: one-way analysis of variance over the groups
+    (member, strut) with at least 3 frames. What ``LabellingConfig.shared_variance`` 0.5
+    comes from."""
+    S = S[S[:, 2] >= NARROW_MIN_WIDTH_PX]
+    floor = np.maximum(cfg.taper_floor, NARROW_FLOOR_PX2 / S[:, 2] ** 2)
+    z = (S[:, 3] - S[:, 4]) / np.hypot(S[:, 5], floor)
     keys = S[:, 6] * 10 + S[:, 1]
     groups = [z[keys == k] for k in np.unique(keys)]
     groups = [g for g in groups if len(g) >= 3]
@@ -106,14 +110,16 @@ def shared_section(S: np.ndarray, cfg: StrutDetectorConfig) -> list[str]:
         "",
         "## What a strut's frames share",
         "",
-        f"The weighed struts' errors over their weighed sigma, grouped by member and strut "
+        f"The errors of the struts at least {NARROW_MIN_WIDTH_PX:g} px wide over their sigma "
+        f"with the floor max({cfg.taper_floor:g}, {NARROW_FLOOR_PX2:g} / w^2), grouped by "
+        "member and strut "
         f"({len(groups)} groups of at least 3 frames, median {np.median(n):.0f} frames; "
         "one-way analysis of variance): the variance *within* a group (from frame to frame) "
         "and *between* groups (a bias the strut shows in every frame of its member), and "
-        "their ratio to the total (intraclass correlation). A track's tapers are fitted with "
-        "a bias per strut of variance `LabellingConfig.shared_variance` = "
-        f"{LabellingConfig().shared_variance:g} on top of each frame's unit variance "
-        '(docs/bracket.md, "Strut taper").',
+        "their ratio to the total (intraclass correlation). `LabellingConfig.shared_variance` "
+        "fits a track's tapers with a bias per strut of that variance on top of each frame's "
+        f"unit variance (default {LabellingConfig().shared_variance:g}: frames independent; "
+        'docs/bracket.md, "Narrow struts\' tapers and a bias their frames share").',
         "",
         "| within | between | intraclass correlation | sd of the group means (independent frames: "
         "sqrt(mean 1/n)) |",
@@ -204,8 +210,10 @@ def main(argv: list[str] | None = None) -> int:
         "",
     ]
     laws = [(cfg.taper_floor, cfg.taper_floor_px2, "default")]
-    laws += [(cfg.taper_floor, c, f"{c:g} / w^2") for c in (2.0, 3.0)]
-    laws += [(f, 0.0, f"constant {f:g}") for f in (0.02, 0.04)]
+    laws += [
+        (cfg.taper_floor, c, f"{c:g} / w^2") for c in (2.0, 2.5, 3.0) if c != cfg.taper_floor_px2
+    ]
+    laws += [(0.04, 0.0, "constant 0.04")]
     lines += [
         "| width px | n | " + " | ".join(name for *_, name in laws) + " |",
         "|---|---|" + "---|" * len(laws),

@@ -132,13 +132,15 @@ class StrutDetectorConfig:
             does not show, added in quadrature (a shaded limb, the lit part of a side-lit strut
             and the blur change a little along a strut): the spread of measured minus true
             tapers on the bracket family's tuning seeds (docs/bracket.md, "Strut taper").
-        taper_floor_px2: below ``sqrt(taper_floor_px2 / taper_floor)`` px (11 px) the floor is
+        taper_floor_px2: > 0: below ``sqrt(taper_floor_px2 / taper_floor)`` px the floor is
             ``taper_floor_px2 / w**2`` for a strut ``w`` px wide (`taper_noise`): the blur
             merges a narrow strut's edges, so its taper's error grows faster than ``1 / w``.
-            Fitted on the tuning seeds 0-99 so that the measured minus true tapers over their
-            sigma have an rms of 1 in every width band from 5 to 10 px (0.94-1.07; 2.0 px^2
-            left the 6-9 px bands at 1.2-1.3, 3.0 px^2 at 0.90-0.94; a constant 0.02 had
-            1.3-2.1 and 6-14 % beyond 3 sigmas below 9 px).
+            2.5 px^2 (11 px) makes the measured minus true tapers over their sigma have an
+            rms of 1 in every width band from 5 to 10 px on the tuning seeds 0-99, where the
+            constant floor leaves 1.2-1.6 at 8-10 px (docs/results/bracket_taper.md). Not
+            the default: with it (and ``taper_min_width_px`` 6) the decision over frames
+            on tuning 76-99 lost more frames than it gained (docs/bracket.md, "Narrow
+            struts' tapers and a bias their frames share").
         max_taper_chi: a strut's taper misfit counts as at most this many sigmas (a truncated
             square, in the single frame's verification and in the fits of
             `PartialImageModel`: an outlying measurement, e.g. a cell line along a strut,
@@ -146,7 +148,8 @@ class StrutDetectorConfig:
             frames).
         taper_min_width_px: a strut narrower than this [px] has its taper ignored: there the
             blur merges its two edges and the measured taper is compressed (two thirds of the
-            true one at 5-6 px on the family's tuning seeds 0-99, 1.0-1.2 from 6 px up).
+            true one at 5-6 px on the family's tuning seeds 0-99) and noisy (robust spread
+            0.07-0.09 at 5-8 px, 0.03-0.05 at 8-10 px).
         use_taper: weigh the struts' tapers (with a known ``strut_radius_m``); False: the
             hypotheses are verified and weighed as before the taper was measured.
         gate_deg, gate_rel: tracking: a pose farther than ``gate_deg`` in attitude or
@@ -184,9 +187,9 @@ class StrutDetectorConfig:
     max_width_spread: float = 0.35
     width_spread_gate: float = 0.7
     taper_floor: float = 0.02
-    taper_floor_px2: float = 2.5
+    taper_floor_px2: float = 0.0
     max_taper_chi: float = 3.0
-    taper_min_width_px: float = 6.0
+    taper_min_width_px: float = 8.0
     use_taper: bool = True
     gate_deg: float = 15.0
     gate_rel: float = 0.25

@@ -369,8 +369,9 @@ def test_late_rival_reaches_back_to_the_first_frame() -> None:
     (log-likelihood ratio >= 6.9). Reaching back, the root's track explains frames 0-8 from
     frame 0 and is within the noise of the truth's: frames 5-8 are not decided. Noise-free
     data: the exact comparison, no tolerance beyond the 6.9 threshold and the 8 deg rival
-    distance. The struts here are 6-8 px wide: with their tapers (`taper_min_width_px` 6)
-    every frame is decided either way (log-likelihood ratio 23-25)."""
+    distance. The struts here are 6-8 px wide: with their tapers weighed from 6 px
+    (`taper_min_width_px` 6, `taper_floor_px2` 2.5) every frame is decided either way
+    (log-likelihood ratio 23-25)."""
     times, truth, V, K_, frac, radius = _seed0_exact(9)
     geo = BracketGeometry(vertices_m=V)
     cfg = StrutDetectorConfig(strut_radius_m=radius, use_taper=False)
@@ -529,7 +530,7 @@ def test_an_outlying_taper_counts_at_most_its_cap() -> None:
     geo = BracketGeometry(vertices_m=V_SKEW)
     cfg = StrutDetectorConfig(strut_radius_m=0.012)
     hyps = [noise_free_hypotheses(T, geo, K, 0.5, cfg)[0] for T in truth]
-    for shared in (0.0, LabellingConfig().shared_variance):
+    for shared in (0.0, 0.5):
         tracks = []
         for off in ((), (4, 7)):
             lab = SequenceLabeller(V_SKEW.mean(axis=0), LabellingConfig(shared_variance=shared))
