@@ -446,3 +446,17 @@ def test_covering_grows_the_kept_sigma_only_beyond_agreement() -> None:
     limit = bl.TAPER_AGREE * math.hypot(0.008, 0.008, 0.02)
     assert bl._covering(kept, (-0.237 + limit - 1e-6, 0.008, SPAN), 0.02) == kept
     assert bl._covering(kept, None, 0.02) == kept
+
+
+def test_taper_noise_floor_by_width() -> None:
+    """`taper_noise`: the stated sigma and the floor in quadrature; the floor is
+    `taper_floor` by default at every width, and with `taper_floor_px2` > 0 it is
+    ``px2 / w^2`` below ``sqrt(px2 / taper_floor)`` px (exact arithmetic)."""
+    st = bl.Strut(np.zeros(2), np.array([1.0, 0.0]), 0.0, 100.0, 100.0, 0.0, 5.0, 0.1, 0.03)
+    cfg = StrutDetectorConfig()
+    assert bl.taper_noise(st, cfg) == math.hypot(0.03, cfg.taper_floor)
+    narrow = replace(cfg, taper_floor_px2=2.5)
+    assert bl.taper_noise(st, narrow) == math.hypot(0.03, 2.5 / 25.0)
+    wide = replace(st, width_px=20.0)
+    assert bl.taper_noise(wide, narrow) == math.hypot(0.03, cfg.taper_floor)
+    assert bl.taper_noise(replace(st, width_px=0.0), narrow) == math.inf
