@@ -233,42 +233,32 @@ def image_factor(i: int, model: ImageResidual, shared: float = 0.0) -> gtsam.Cus
     `fit_track`'s); truncated at ``shared_cap`` like ``r`` itself, so an outlying frame
     counts at most that many sigmas whatever the bias."""
     groups = np.asarray(model.shared_groups, dtype=int)
-    rows = np.flatnonzero(groups >= 0)
-    if shared <= 0.0 or rows.size == 0:
-
-        def error(
-            this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None
-        ) -> Any:
-            X_i = values.atPose3(this.keys()[0])
-            r, J = model.residual_and_jacobian(from_state(X_i))
-            if H is not None:
-                H[0] = np.asfortranarray(J @ state_to_pose_jacobian(X_i))
-            return r
-
-        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(model.dim), [X(i)], error)
-    if int(groups.max()) >= SHARED_GROUPS:
+    rows = np.flatnonzero(groups >= 0) if shared > 0.0 else np.zeros(0, dtype=int)
+    if rows.size and int(groups.max()) >= SHARED_GROUPS:
         raise BackendError(f"image_factor: shared group {groups.max()} >= {SHARED_GROUPS}")
-    cap = float(model.shared_cap)
+    keys = [X(i), SHARED_BIAS] if rows.size else [X(i)]
+    cap = float(model.shared_cap) if rows.size else math.inf
 
-    def error_shared(
-        this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None
-    ) -> Any:
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
         X_i = values.atPose3(this.keys()[0])
-        b = values.atVector(this.keys()[1])
         r, J = model.residual_and_jacobian(from_state(X_i))
-        r = np.array(r, dtype=float)
-        r[rows] -= b[groups[rows]]
-        live = np.abs(r) <= cap  # beyond the cap the truncated square is flat
+        if rows.size:
+            r = np.array(r, dtype=float)
+            r[rows] -= values.atVector(this.keys()[1])[groups[rows]]
+            flat = rows[np.abs(r[rows]) > cap]  # beyond the cap the truncated square is flat
+            r[rows] = np.clip(r[rows], -cap, cap)
+            J = np.array(J, dtype=float)
+            J[flat] = 0.0
         if H is not None:
-            H[0] = np.asfortranarray(np.where(live[:, None], J, 0.0) @ state_to_pose_jacobian(X_i))
-            Hb = np.zeros((len(r), SHARED_GROUPS))
-            Hb[rows, groups[rows]] = np.where(live[rows], -1.0, 0.0)
-            H[1] = np.asfortranarray(Hb)
-        return np.clip(r, -cap, cap)
+            H[0] = np.asfortranarray(J @ state_to_pose_jacobian(X_i))
+            if rows.size:
+                Hb = np.zeros((len(r), SHARED_GROUPS))
+                Hb[rows, groups[rows]] = -1.0
+                Hb[flat] = 0.0
+                H[1] = np.asfortranarray(Hb)
+        return r
 
-    return gtsam.CustomFactor(
-        gtsam.noiseModel.Unit.Create(model.dim), [X(i), SHARED_BIAS], error_shared
-    )
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(model.dim), keys, error)
 
 
 # the length of a track's ``SHARED_BIAS`` vector: groups 0 .. SHARED_GROUPS - 1 (the

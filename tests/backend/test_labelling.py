@@ -522,7 +522,7 @@ def test_an_outlying_taper_counts_at_most_its_cap() -> None:
     a taper counts at most ``max_taper_chi`` = 3 sigmas in the fit as in the verification,
     so the best track explains every frame, its fit's error is the clean track's plus 4.5
     per outlier (to 1e-3; with the tapers' shared bias, at most that), its poses are the
-    clean track's (the clipped residual does not pull: 0.01 deg; 0.5 with the shared bias, bound 1)
+    clean track's (the clipped residual does not pull: 0.01 deg; 0.63 with the shared bias, bound 1)
     and every frame is reported. Under Huber's linear tail, which the fit had before, the
     two frames cost more than a miss each and were left out (tuning seed 29: three tapers
     12-15 sigma off in each of its closest frames pulled them 6 deg)."""
@@ -546,7 +546,7 @@ def test_an_outlying_taper_counts_at_most_its_cap() -> None:
             assert 0.0 < extra <= 2 * 0.5 * 3.0**2 + 1e-3, extra
         # the shared bias takes part of the two clipped outliers (their 2 x 3 sigmas over 8
         # frames and the prior: 0.6 sigma), and the other frames' tapers then pull their
-        # poses by that (up to 0.50 deg, frame 5)
+        # poses by that (up to 0.63 deg, frame 7)
         for k, (a, b) in enumerate(zip(clean.fit.poses, outlying.fit.poses, strict=True)):
             assert _angle_deg(a, b) < (0.01 if shared == 0.0 else 1.0), (shared, k)
         assert all(d.candidate == 0 for d in lab.decide())
