@@ -19,6 +19,7 @@ Conventions (docs/measurements.md):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -329,6 +330,45 @@ class SpinRateMeasurement:
     def ok(self) -> bool:
         """True when the rate was accepted (``status == ok``)."""
         return self.status is SpinStatus.OK
+
+
+@dataclass(frozen=True, kw_only=True)
+class PlaneNormalMeasurement:
+    """The normal of a plane of the target seen through a rectangular grid of straight lines
+    on it (a solar array's cells), from the grid's two vanishing directions
+    (`satpose.frontend.grid_plane.measure_grid_plane`).
+
+    A direction in the camera frame, up to sign (the grid does not say which side is in
+    front); where the plane is rigid with the rest of the target its normal is a fixed
+    direction of the target frame, whatever that direction is.
+
+    Attributes:
+        normal: unit normal in the left camera frame (3,), the sign with ``normal[2] < 0``
+            (toward the camera).
+        sigma_rad: standard deviation of its direction [rad] (isotropic, about each axis
+            perpendicular to it).
+        lines: grid lines (each fitted to its segments) behind each of the two vanishing
+            directions.
+        skew_deg: how far the two vanishing directions are from perpendicular [deg] (a
+            rectangular grid's are at 90 deg; the measurement's own check).
+    """
+
+    normal: np.ndarray
+    sigma_rad: float
+    lines: tuple[int, int]
+    skew_deg: float
+
+    def __post_init__(self) -> None:
+        n = np.array(self.normal, dtype=float).reshape(-1)
+        if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
+            raise MeasurementError(f"plane normal must be a finite non-zero 3-vector, got {n}")
+        n = n / np.linalg.norm(n)
+        object.__setattr__(self, "normal", -n if n[2] > 0 else n)
+        if not (math.isfinite(self.sigma_rad) and self.sigma_rad > 0):
+            raise MeasurementError(f"plane normal sigma must be > 0, got {self.sigma_rad}")
+        if not math.isfinite(self.skew_deg):
+            raise MeasurementError(f"plane normal skew must be finite, got {self.skew_deg}")
+        object.__setattr__(self, "lines", tuple(int(k) for k in self.lines))
 
 
 @dataclass(frozen=True, kw_only=True)
