@@ -30,6 +30,7 @@ __all__ = [
     "BIAS_CHAR",
     "DISPARITY_BIAS",
     "LANDMARK_CHAR",
+    "PLANE_NORMAL",
     "POSE_CHAR",
     "RADIUS",
     "RADIUS_CHAR",
@@ -49,6 +50,9 @@ DISPARITY_BIAS = gtsam.symbol("d", 0)
 """The ring edges' common disparity bias [px]."""
 SHARED_BIAS = gtsam.symbol("s", 0)
 """A track's per-group image biases (`satpose.backend.labelling.fit_track`)."""
+PLANE_NORMAL = gtsam.symbol("n", 0)
+"""A track's normal of a plane rigid with the target, as a 2-vector offset in the tangent
+plane of a reference direction (`satpose.backend.labelling.fit_track`)."""
 RIG = gtsam.symbol("c", 0)
 """The rig's ``left_from_right`` as the landmarks see it."""
 

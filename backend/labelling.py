@@ -41,8 +41,8 @@ import numpy as np
 from scipy.stats import chi2
 
 from satpose.backend.errors import BackendError
-from satpose.backend.factors import MeasurementConfig, pose_factor
-from satpose.backend.keys import SHARED_BIAS, V, X
+from satpose.backend.factors import MeasurementConfig, pose_factor, tangent_basis
+from satpose.backend.keys import PLANE_NORMAL, SHARED_BIAS, V, X
 from satpose.backend.motion import (
     MotionConfig,
     constant_twist_factor,
@@ -54,7 +54,7 @@ from satpose.backend.motion import (
 from satpose.backend.pose3 import from_state, local_error, state_to_pose_jacobian, to_state
 from satpose.backend.solve import levenberg_marquardt
 from satpose.datasets.geometry import Rigid3
-from satpose.frontend.measurements import PoseMeasurement
+from satpose.frontend.measurements import PlaneNormalMeasurement, PoseMeasurement
 
 _GAUSSIAN = MeasurementConfig(coupling="loose", robust="none")
 
@@ -101,6 +101,9 @@ class Candidate:
             may take that ``image`` with its own predicted pose when no candidate pose of the
             group is near it (the solution near the truth can vanish in noise).
         ref: the caller's handle (e.g. the detection), returned with the decision.
+        plane: the frame's measured normal of a plane rigid with the target (a solar
+            array's cell grid; the same for every candidate of the frame), or None; weighed
+            when `LabellingConfig.plane_normals` is on.
     """
 
     pose: PoseMeasurement
@@ -109,6 +112,7 @@ class Candidate:
     image_dim: int = 0
     group: int = -1
     ref: object = None
+    plane: PlaneNormalMeasurement | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.image_chi2) and self.image_chi2 >= 0):
@@ -172,6 +176,14 @@ class LabellingConfig:
             before. 0.5 is not the default: on tuning 76-99 it lost more frames than it
             gained (docs/bracket.md, "Narrow struts' tapers and a bias their frames
             share").
+        plane_normals: weigh the candidates' measured plane normals (``Candidate.plane``):
+            the plane is rigid with the target, so its normal is one direction of the target
+            frame, unknown and fitted per track (`fit_track`); a track whose poses turn that
+            direction from frame to frame misfits it. False: the normals are not used (the
+            behaviour before).
+        plane_cap: a frame's plane-normal misfit counts as at most this many sigmas (a
+            truncated square: a frame where the grid's normal is wrong, or a plane that is
+            not rigid with the target, cannot veto the true track).
     """
 
     motion: MotionConfig = field(
@@ -192,9 +204,11 @@ class LabellingConfig:
     max_gap: int = 3
     reach_back: bool = True
     shared_variance: float = 0.0
+    plane_normals: bool = False
+    plane_cap: float = 3.0
 
     def __post_init__(self) -> None:
-        for name in ("log_lr_threshold", "miss_cost", "gate_deg", "gate_rel"):
+        for name in ("log_lr_threshold", "miss_cost", "gate_deg", "gate_rel", "plane_cap"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise BackendError(f"labelling.{name} must be positive, got {v}")
@@ -261,6 +275,57 @@ def image_factor(i: int, model: ImageResidual, shared: float = 0.0) -> gtsam.Cus
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(model.dim), keys, error)
 
 
+def plane_factor(
+    i: int, plane: PlaneNormalMeasurement, reference: np.ndarray, cap: float
+) -> gtsam.CustomFactor:
+    """The measured normal ``m`` (camera frame, up to sign) of a plane rigid with the target
+    on ``X(i)`` and ``PLANE_NORMAL``: the track's normal in the target frame ``n = (n0 + B0
+    d) / |n0 + B0 d|`` (``reference`` ``n0``, ``B0`` its tangent basis, ``d`` the 2-vector
+    ``PLANE_NORMAL``) seen from the frame's pose, ``y = R n``, against ``m``: the residual
+    ``B_m^T y / sigma`` (``B_m`` the tangent basis at ``m``, its sign toward ``y``), the
+    angle between the two in radians over sigma to first order. Truncated at ``cap`` (its
+    norm): beyond it the truncated square is flat."""
+    n0 = np.asarray(reference, dtype=float) / np.linalg.norm(reference)
+    B0 = tangent_basis(n0)
+    m = np.asarray(plane.normal, dtype=float)
+    sigma = float(plane.sigma_rad)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> Any:
+        X_i = values.atPose3(this.keys()[0])
+        d = values.atVector(this.keys()[1])
+        u = n0 + B0 @ d
+        nu = float(np.linalg.norm(u))
+        n = u / nu
+        R_k = X_i.rotation().matrix().T  # camera from target (X = T^-1)
+        y = R_k @ n
+        mm = m if float(m @ y) >= 0.0 else -m
+        Bm = tangent_basis(mm)
+        r = Bm.T @ y / sigma
+        norm = float(np.linalg.norm(r))
+        flat = norm > cap
+        if H is not None:
+            if flat:
+                H[0] = np.asfortranarray(np.zeros((2, 6)))
+                H[1] = np.asfortranarray(np.zeros((2, 2)))
+            else:
+                # X Exp([w, v]): R_k -> Exp(-w) R_k, y -> y + y x w
+                yx = np.array([[0.0, -y[2], y[1]], [y[2], 0.0, -y[0]], [-y[1], y[0], 0.0]])
+                H[0] = np.asfortranarray(np.c_[Bm.T @ yx / sigma, np.zeros((2, 3))])
+                dn = (np.eye(3) - np.outer(n, n)) @ B0 / nu
+                H[1] = np.asfortranarray(Bm.T @ R_k @ dn / sigma)
+        return r * (cap / norm) if flat else r
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2), [X(i), PLANE_NORMAL], error)
+
+
+def plane_reference(poses: list[Rigid3], planes: list[PlaneNormalMeasurement]) -> np.ndarray:
+    """The target-frame direction that the measured normals point to from ``poses``: the
+    principal direction of ``R_k^T m_k`` (each up to sign)."""
+    A = np.array([T.R.T @ p.normal for T, p in zip(poses, planes, strict=True)])
+    _, _, vt = np.linalg.svd(A, full_matrices=False)
+    return np.asarray(vt[0])
+
+
 # the length of a track's ``SHARED_BIAS`` vector: groups 0 .. SHARED_GROUPS - 1 (the
 # bracket's three struts)
 SHARED_GROUPS = 3
@@ -272,6 +337,7 @@ def fit_track(
     motion: MotionConfig,
     initial: tuple[list[Rigid3], np.ndarray] | None = None,
     shared: float = 0.0,
+    plane_cap: float | None = None,
 ) -> TrackFit:
     """Batch fit of the constant-twist prior to one candidate per frame: each frame's
     measured quantities (``image``) or, without them, its pose as a Gaussian prior (no
@@ -283,7 +349,12 @@ def fit_track(
     over the track's frames (`image_factor`): a vector ``SHARED_BIAS`` with a zero-mean
     prior of variance ``shared`` (as many prior residuals as unknowns: the degrees of
     freedom do not change). A bias that every frame shows is then evidence once, not once
-    per frame."""
+    per frame.
+
+    ``plane_cap`` not None: the candidates' measured plane normals (``Candidate.plane``, two
+    or more in the track) are weighed with one unknown normal in the target frame
+    (`plane_factor`, truncated at ``plane_cap`` sigmas): two residuals per normal, two
+    unknowns, so the degrees of freedom grow by ``2 (normals - 1)``."""
     n = len(candidates)
     if n == 0 or len(t_s) != n:
         raise BackendError(f"fit_track: {len(t_s)} times for {n} candidates")
@@ -312,6 +383,21 @@ def fit_track(
                 gtsam.noiseModel.Isotropic.Sigma(SHARED_GROUPS, math.sqrt(shared)),
             )
         )
+    with_plane = [
+        i for i, c in enumerate(candidates) if plane_cap is not None and c.plane is not None
+    ]
+    if len(with_plane) >= 2:
+        assert plane_cap is not None
+        ref = plane_reference(
+            [start[i] for i in with_plane],
+            [p for i in with_plane if (p := candidates[i].plane) is not None],
+        )
+        values.insert(PLANE_NORMAL, np.zeros(2))
+        for i in with_plane:
+            plane = candidates[i].plane
+            assert plane is not None
+            graph.add(plane_factor(i, plane, ref, plane_cap))
+        dims.append(2 * len(with_plane) - 2)
     for i, c in enumerate(candidates):
         if c.image is not None:
             graph.add(image_factor(i, c.image, shared))
@@ -440,7 +526,18 @@ class SequenceLabeller:
                 np.vstack([parent.fit.twists, parent.fit.twists[-1:]]),
             )
         self.fits += 1
-        return fit_track(t, cands, self.config.motion, init, self.config.shared_variance)
+        return fit_track(
+            t, cands, self.config.motion, init, self.config.shared_variance, self._plane_cap()
+        )
+
+    def _plane_cap(self) -> float | None:
+        return self.config.plane_cap if self.config.plane_normals else None
+
+    def _added_dim(self, c: Candidate) -> int:
+        """The quantities a candidate adds to a track's fit: its image's and, when weighed,
+        its plane normal's."""
+        image = c.image.dim if c.image is not None else 6
+        return image + (2 if self.config.plane_normals and c.plane is not None else 0)
 
     def _image_cost(self, picks: dict[int, int]) -> float:
         return sum(
@@ -530,7 +627,7 @@ class SequenceLabeller:
                         continue
                     picks = {**tr.picks, k: j}
                     fit = self._fit(picks, tr)
-                    if 2.0 * (fit.error - tr.fit.error) <= self._fit_gate(c.image.dim):
+                    if 2.0 * (fit.error - tr.fit.error) <= self._fit_gate(self._added_dim(c)):
                         new.append(_Track(picks, fit, self._image_cost(picks), 0))
                         self._use(used, j, c, fit)
             # every group of measured quantities that the predicted pose explains, also fitted
@@ -623,8 +720,9 @@ class SequenceLabeller:
                     cfg.motion,
                     init,
                     cfg.shared_variance,
+                    self._plane_cap(),
                 )
-                if 2.0 * (fit.error - at.fit.error) > self._fit_gate(c.image.dim):
+                if 2.0 * (fit.error - at.fit.error) > self._fit_gate(self._added_dim(c)):
                     continue
                 if best is None or fit.error < best.fit.error:
                     best = _Track(picks, fit, self._image_cost(picks), 0)
