@@ -69,6 +69,7 @@ from satpose.frontend.bracket_lines import (
     partial_hypotheses,
     silhouette_candidates,
 )
+from satpose.frontend.grid_plane import GridPlaneConfig, measure_grid_plane
 from satpose.frontend.measurements import FrameMeasurements, exception_failure
 from satpose.frontend.preprocess import Undistorter
 from satpose.tools.badframes import BadFrames
@@ -223,6 +224,7 @@ def run_bracket(
     labelling: Any = None,
     predicted_searches: int = 1,
     progress: Callable[[int, int], None] | None = None,
+    grid: GridPlaneConfig | None = None,
 ) -> dict[str, Any]:
     """Run the bracket method on a mono (or stereo: left image only) sequence; see the module
     docstring for the files. Returns a summary (frames with a pose, RMS errors if truth).
@@ -243,7 +245,9 @@ def run_bracket(
     `LabellingConfig`; None: its defaults); ``decision`` ``offline`` reports each frame as
     decided by the whole sequence (back to a track's start), ``online`` from the frames up to
     it (from the decision on). Each frame is also searched near the predictions of the
-    ``predicted_searches`` best tracks."""
+    ``predicted_searches`` best tracks. With ``labelling.plane_normals`` each frame's solar
+    array normal is measured (`satpose.frontend.grid_plane.measure_grid_plane`, settings
+    ``grid``) and weighed by the decision over frames."""
     if decision not in ("offline", "online"):
         raise BracketRunError(f"decision must be offline or online, got {decision!r}")
     seq = load_sequence(sequence_path)
@@ -322,7 +326,15 @@ def run_bracket(
                             det_cfg,
                             extra=[d for d in near if d.result is not None],
                         )
-                        labeller.step(fr.t_s, hypothesis_candidates(hyps))
+                        step_cands = hypothesis_candidates(hyps)
+                        if labeller.config.plane_normals and step_cands:
+                            # the solar array's plane, rigid with the bracket: one normal per
+                            # frame, shared by its candidates (none: the frame goes without)
+                            plane, plane_why = measure_grid_plane(image, cam, grid)
+                            if plane is None:
+                                log.debug("frame %d: %s", fr.index, plane_why)
+                            step_cands = [replace(c, plane=plane) for c in step_cands]
+                        labeller.step(fr.t_s, step_cands)
                         step = len(labeller.t_s) - 1
                         pending[k] = (det, hyps, step, labeller.online_decision())
                         if overlay_every > 0 and k % overlay_every == 0:
