@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import platform
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -17,6 +20,8 @@ from satpose.datasets.scenarios import preset
 from satpose.datasets.seed_split import TUNING_SEEDS
 from satpose.datasets.sequence import Sequence, load_sequence
 from satpose.frontend.preprocess import Undistorter
+
+T = TypeVar("T")
 
 
 def ensure_rendered(name: str, root: Path) -> Path:
@@ -112,3 +117,21 @@ def bracket_members(seeds: list[int], root: Path) -> Iterator[tuple[int, Bracket
                 undistort=Undistorter(seq.calibration.left),
             ),
         )
+
+
+def rows_by_member(job: Callable[[int], list[T]], seeds: list[int], jobs: int) -> list[T]:
+    """``job(seed)``'s rows for every seed, in order, printing progress: in this process
+    (``jobs`` 1) or ``jobs`` fresh interpreters (spawned: no state inherited between
+    members); ``job`` must then be picklable (a module-level function or a partial)."""
+    rows: list[T] = []
+    if jobs == 1:
+        for seed in seeds:
+            rows += job(seed)
+            print(seed, len(rows), flush=True)
+        return rows
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+        for seed, got in zip(seeds, pool.map(job, seeds), strict=True):
+            rows += got
+            print(seed, len(rows), flush=True)
+    return rows

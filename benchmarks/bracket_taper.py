@@ -23,16 +23,21 @@ from __future__ import annotations
 
 import argparse
 import math
-import multiprocessing
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import BracketMember, bracket_members, machine_summary, tuning_seeds, write_page
+from _common import (
+    BracketMember,
+    bracket_members,
+    machine_summary,
+    rows_by_member,
+    tuning_seeds,
+    write_page,
+)
 
 from satpose.backend.labelling import LabellingConfig
 from satpose.frontend.bracket import project
@@ -146,18 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.jobs < 1:
         ap.error(f"--jobs {args.jobs}: must be >= 1")
-    job = partial(seed_rows, root=args.root)
-    rows: list[tuple[float, ...]] = []
-    if args.jobs == 1:
-        for seed in args.seeds:
-            rows += job(seed)
-            print(seed, len(rows), flush=True)
-    else:  # fresh interpreters: no state inherited between members
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx) as pool:
-            for seed, got in zip(args.seeds, pool.map(job, args.seeds), strict=True):
-                rows += got
-                print(seed, len(rows), flush=True)
+    rows: list[tuple[float, ...]] = rows_by_member(
+        partial(seed_rows, root=args.root), args.seeds, args.jobs
+    )
     R = np.array(rows, dtype=float)
     cfg = StrutDetectorConfig()
     lines = [

@@ -19,10 +19,8 @@ from __future__ import annotations
 
 import argparse
 import math
-import multiprocessing
 import sys
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
@@ -30,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _common import bracket_members, machine_summary, tuning_seeds, write_page
+from _common import bracket_members, machine_summary, rows_by_member, tuning_seeds, write_page
 
 from satpose.frontend.grid_plane import GridPlaneConfig, measure_grid_plane
 
@@ -104,18 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.jobs < 1:
         ap.error(f"--jobs {args.jobs}: must be >= 1")
-    job = partial(seed_rows, root=args.root)
-    rows: list[dict[str, object]] = []
-    if args.jobs == 1:
-        for seed in args.seeds:
-            rows += job(seed)
-            print(seed, len(rows), flush=True)
-    else:  # fresh interpreters: no state inherited between members
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx) as pool:
-            for seed, got in zip(args.seeds, pool.map(job, args.seeds), strict=True):
-                rows += got
-                print(seed, len(rows), flush=True)
+    rows: list[dict[str, object]] = rows_by_member(
+        partial(seed_rows, root=args.root), args.seeds, args.jobs
+    )
     ok: list[dict[str, float]] = [r for r in rows if "err" in r]  # type: ignore[misc]
     refused = Counter(_kind(str(r["why"])) for r in rows if "why" in r)
     cfg = GridPlaneConfig()
