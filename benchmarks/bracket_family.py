@@ -51,6 +51,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import write_page
 
+from satpose.backend.labelling import LabellingConfig
 from satpose.datasets.bracket_family import render_bracket_sequence
 from satpose.datasets.geometry import Rigid3
 from satpose.datasets.seed_split import TUNING_SEEDS, VALIDATION_SEEDS
@@ -109,13 +110,21 @@ def per_seq_from_campaign(
     return [(s, score_from_json(by_seed[s]["bracket.score"])) for s in seeds]
 
 
-def member(seed: int, root: Path, frames: int, size: tuple[int, int]) -> dict[str, Any]:
-    """One member scored (`score_sequence`), rendered first if its folder has no frames."""
+def member(
+    seed: int, root: Path, frames: int, size: tuple[int, int], array_plane: bool = False
+) -> dict[str, Any]:
+    """One member scored (`score_sequence`), rendered first if its folder has no frames;
+    ``array_plane``: with `LabellingConfig.plane_normals` on (its run in ``run-N-array-plane``)."""
     seq = root / f"seed-{seed}"
     if not (seq / "frames.csv").is_file():
         print(f"rendering seed {seed}", flush=True)
         render_bracket_sequence(seed, seq, frames=frames, size=size, overwrite=True)
-    res = score_sequence(seq, root / f"run-{seed}")
+    if array_plane:
+        res = score_sequence(
+            seq, root / f"run-{seed}-array-plane", labelling=LabellingConfig(plane_normals=True)
+        )
+    else:
+        res = score_sequence(seq, root / f"run-{seed}")
     print(seed, res["summary"], flush=True)
     return res
 
@@ -145,6 +154,12 @@ def main(argv: list[str] | None = None) -> int:
         help="members scored at once, each in its own process (results do not depend on it; "
         "the page's CPU per frame, measured per member, does on a loaded machine)",
     )
+    ap.add_argument(
+        "--array-plane",
+        action="store_true",
+        help="weigh the solar array's normal in the decision over frames "
+        "(LabellingConfig.plane_normals; the page gets an _array_plane suffix)",
+    )
     args = ap.parse_args(argv)
     if args.jobs < 1:
         ap.error(f"--jobs {args.jobs}: must be >= 1")
@@ -154,7 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.from_campaign is not None:
         per_seq = per_seq_from_campaign(args.from_campaign, seeds, args.frames, f"{w}x{h}")
     else:
-        job = partial(member, root=args.root, frames=args.frames, size=(w, h))
+        job = partial(
+            member, root=args.root, frames=args.frames, size=(w, h), array_plane=args.array_plane
+        )
         if args.jobs == 1:
             per_seq = [(seed, job(seed)) for seed in seeds]
         else:  # fresh interpreters: no state inherited between members
@@ -289,6 +306,7 @@ def main(argv: list[str] | None = None) -> int:
             + (f" --first {args.first}" if args.first else "")
             + f" --frames {args.frames} --size {args.size}"
             + (f" --from-campaign {args.from_campaign}" if args.from_campaign else "")
+            + (" --array-plane" if args.array_plane else "")
             + "` "
             "(never hand-edited). Members: `datasets/bracket_family.py` (numpy ray caster), "
             f"seeds {seeds[0]}-{seeds[-1]}, {args.frames} frames each at 1 Hz, {args.size} "
@@ -377,7 +395,9 @@ def main(argv: list[str] | None = None) -> int:
             "",
         ]
     )
-    suffix = f"_from_{seeds[0]}" if args.first else ""
+    suffix = (f"_from_{seeds[0]}" if args.first else "") + (
+        "_array_plane" if args.array_plane else ""
+    )
     write_page(args.out_dir / f"bracket_family_{args.split}{suffix}.md", text)
     return 0
 

@@ -149,9 +149,11 @@ def score_sequence(
     estimator: str = "none",
     detector: StrutDetectorConfig | None = None,
     progress: Callable[[int, int], None] | None = None,
+    labelling: LabellingConfig | None = None,
 ) -> dict[str, Any]:
-    """Run `run_bracket` on a member (``estimator`` none: the per-frame poses) into
-    ``run_dir`` and score each frame: range, pose or reason, errors, point residuals.
+    """Run `run_bracket` on a member (``estimator`` none: the per-frame poses; ``labelling``
+    the decision over frames' settings, None: its defaults) into ``run_dir`` and score each
+    frame: range, pose or reason, errors, point residuals.
 
     Returns:
         ``rows`` (per frame: ``seed`` (the folder's name), ``frame``, ``range_m``, ``T``
@@ -180,6 +182,7 @@ def score_sequence(
         overwrite=True,
         require_pose=False,
         progress=progress,
+        labelling=labelling,
     )
     cpu = time.process_time() - start
     t_est, est_poses = read_tum(run_dir / "per_frame.tum")
