@@ -383,21 +383,13 @@ def fit_track(
                 gtsam.noiseModel.Isotropic.Sigma(SHARED_GROUPS, math.sqrt(shared)),
             )
         )
-    with_plane = [
-        i for i, c in enumerate(candidates) if plane_cap is not None and c.plane is not None
-    ]
-    if len(with_plane) >= 2:
-        assert plane_cap is not None
-        ref = plane_reference(
-            [start[i] for i in with_plane],
-            [p for i in with_plane if (p := candidates[i].plane) is not None],
-        )
+    planes = {i: c.plane for i, c in enumerate(candidates) if c.plane is not None}
+    if plane_cap is not None and len(planes) >= 2:
+        ref = plane_reference([start[i] for i in planes], list(planes.values()))
         values.insert(PLANE_NORMAL, np.zeros(2))
-        for i in with_plane:
-            plane = candidates[i].plane
-            assert plane is not None
+        for i, plane in planes.items():
             graph.add(plane_factor(i, plane, ref, plane_cap))
-        dims.append(2 * len(with_plane) - 2)
+        dims.append(2 * len(planes) - 2)
     for i, c in enumerate(candidates):
         if c.image is not None:
             graph.add(image_factor(i, c.image, shared))

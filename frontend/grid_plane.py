@@ -134,19 +134,50 @@ def _segments(gray: np.ndarray, camera: PinholeCamera, min_length_px: float) -> 
     return _Segments(lines, (a + c) / 2, (c - a) / length[:, None], length)
 
 
-def _votes(s: _Segments, v: np.ndarray, tol_px: float) -> np.ndarray:
-    """Which segments point at the (homogeneous) vanishing point ``v``: the line from a
-    segment's midpoint to ``v`` passes within ``tol_px`` of its ends."""
-    if abs(v[2]) > 1e-12:
-        to = v[:2] / v[2] - s.mid
+def _offsets(
+    centre: np.ndarray, direction: np.ndarray, length: np.ndarray, x: np.ndarray
+) -> np.ndarray:
+    """Per segment or line (``centre``, unit ``direction``, ``length``), how far its ends lie
+    from the line through its centre and the (homogeneous) point ``x`` [px], signed: half its
+    length times the sine of the angle between (half its length where the point is its
+    centre)."""
+    if abs(x[2]) > 1e-12:
+        to = x[:2] / x[2] - centre
     else:
-        to = np.broadcast_to(v[:2], s.mid.shape).copy()
+        to = np.broadcast_to(x[:2], centre.shape).copy()
     norm = np.linalg.norm(to, axis=1)
     ok = norm > 1e-9
     sin = np.ones(len(to))
-    cross = to[:, 0] * s.direction[:, 1] - to[:, 1] * s.direction[:, 0]
-    sin[ok] = np.abs(cross[ok]) / norm[ok]
-    return np.asarray(0.5 * s.length * sin < tol_px)
+    cross = to[:, 0] * direction[:, 1] - to[:, 1] * direction[:, 0]
+    sin[ok] = cross[ok] / norm[ok]
+    return np.asarray(0.5 * length * sin)
+
+
+def _consensus(
+    homog: np.ndarray,
+    centre: np.ndarray,
+    direction: np.ndarray,
+    length: np.ndarray,
+    tol_px: float,
+    rng: np.random.Generator,
+    iterations: int,
+) -> np.ndarray:
+    """RANSAC for a vanishing point: the intersection of two of the (homogeneous) lines
+    ``homog``, drawn with probability by length; which ones agree (`_offsets` within
+    ``tol_px``) with the point that the largest total length agrees with (boolean)."""
+    n = len(length)
+    best, best_in = -1.0, np.zeros(n, dtype=bool)
+    p = length / length.sum()
+    for _ in range(iterations):
+        i, j = rng.choice(n, 2, replace=False, p=p)
+        v = np.cross(homog[i], homog[j])
+        if np.linalg.norm(v) < 1e-12:
+            continue
+        agree = np.abs(_offsets(centre, direction, length, v / np.linalg.norm(v))) < tol_px
+        score = float(length[agree].sum())
+        if score > best:
+            best, best_in = score, agree
+    return best_in
 
 
 def _fit_point(s: _Segments) -> np.ndarray:
@@ -157,23 +188,13 @@ def _fit_point(s: _Segments) -> np.ndarray:
 
 
 def _ransac(s: _Segments, cfg: GridPlaneConfig, rng: np.random.Generator) -> np.ndarray:
-    """Inliers (boolean) of the vanishing point with the largest total length of votes,
-    refined by least squares and chosen again."""
-    tol = cfg.inlier_px
-    n = len(s.length)
-    best, best_in = -1.0, np.zeros(n, dtype=bool)
-    p = s.length / s.length.sum()
-    for _ in range(cfg.ransac_iterations):
-        i, j = rng.choice(n, 2, replace=False, p=p)
-        v = np.cross(s.lines[i], s.lines[j])
-        if np.linalg.norm(v) < 1e-12:
-            continue
-        inl = _votes(s, v / np.linalg.norm(v), tol)
-        score = float(s.length[inl].sum())
-        if score > best:
-            best, best_in = score, inl
+    """Inliers (boolean) of the segments' vanishing point (`_consensus`), refined by least
+    squares and chosen again."""
+    args = (s.mid, s.direction, s.length)
+    best_in = _consensus(s.lines, *args, cfg.inlier_px, rng, cfg.ransac_iterations)
     if best_in.sum() >= 2:
-        best_in = _votes(s, _fit_point(s.take(np.flatnonzero(best_in))), tol)
+        v = _fit_point(s.take(np.flatnonzero(best_in)))
+        best_in = np.abs(_offsets(*args, v)) < cfg.inlier_px
     return best_in
 
 
@@ -228,50 +249,24 @@ def _fit_lines(s: _Segments, groups: list[np.ndarray]) -> _Lines:
 def _robust_point(
     ln: _Lines, start: np.ndarray, tol_px: float, rng: np.random.Generator, iterations: int
 ) -> tuple[np.ndarray, _Lines]:
-    """The vanishing point of the family's lines that is consistent with most of their
-    length: RANSAC over pairs of lines (their intersection; a line agrees when its ends lie
-    within ``tol_px`` of the line through its centre and the point), then `_fit_point_lines`
-    on the agreeing lines, chosen again and refitted. A long edge nearly parallel to the grid
-    (the array's frame along its edge, a few degrees off the cells) meets the grid's lines
+    """The vanishing point of the family's lines (at least two) that is consistent with most
+    of their length: `_consensus` over pairs of lines, then `_fit_point_lines` on the
+    agreeing lines, chosen again and refitted. A long edge nearly parallel to the grid (the
+    array's frame along its edge, a few degrees off the cells) meets the grid's lines
     elsewhere, and its length would pull a fit of all. Returns the point and the lines
-    kept (all of them, from ``start``, when fewer than two lines)."""
+    kept."""
     n = len(ln.length)
-    if n < 2:
-        return _fit_point_lines(ln, start), ln
-    homog = np.cross(
-        np.c_[ln.centre - ln.direction, np.ones(n)], np.c_[ln.centre + ln.direction, np.ones(n)]
-    )
-    p = ln.length / ln.length.sum()
-    best, keep = -1.0, np.ones(n, dtype=bool)
-    for _ in range(iterations):
-        i, j = rng.choice(n, 2, replace=False, p=p)
-        v = np.cross(homog[i], homog[j])
-        if np.linalg.norm(v) < 1e-12:
-            continue
-        agree = np.abs(_end_offsets(ln, v / np.linalg.norm(v))) <= tol_px
-        score = float(ln.length[agree].sum())
-        if score > best:
-            best, keep = score, agree
+    homog = np.cross(np.c_[ln.centre, np.ones(n)], np.c_[ln.direction, np.zeros(n)])
+    args = (ln.centre, ln.direction, ln.length)
+    keep = _consensus(homog, *args, tol_px, rng, iterations)
     v = start
     for _ in range(2):
         if keep.sum() < 2:
             break
         v = _fit_point_lines(ln.take(np.flatnonzero(keep)), v)
-        keep = np.abs(_end_offsets(ln, v)) <= tol_px
+        keep = np.abs(_offsets(*args, v)) < tol_px
     kept = ln.take(np.flatnonzero(keep))
     return (_fit_point_lines(kept, v) if len(kept.length) >= 2 else v), kept
-
-
-def _end_offsets(ln: _Lines, x: np.ndarray) -> np.ndarray:
-    """Per line, how far its ends lie from the line through its centre and the
-    (homogeneous) point ``x`` [px]: half its length times the sine of the angle between."""
-    if abs(x[2]) > 1e-12:
-        to = x[:2] / x[2] - ln.centre
-    else:
-        to = np.broadcast_to(x[:2], ln.centre.shape).copy()
-    to /= np.maximum(np.linalg.norm(to, axis=1, keepdims=True), 1e-12)
-    sin = to[:, 0] * ln.direction[:, 1] - to[:, 1] * ln.direction[:, 0]
-    return np.asarray(0.5 * ln.length * sin)
 
 
 def _fit_point_lines(ln: _Lines, start: np.ndarray) -> np.ndarray:
@@ -280,17 +275,14 @@ def _fit_point_lines(ln: _Lines, start: np.ndarray) -> np.ndarray:
     and the direction from its centre to the point (Gauss-Newton on the sphere from
     ``start``)."""
     v = start / np.linalg.norm(start)
-
-    def resid(x: np.ndarray) -> np.ndarray:
-        return _end_offsets(ln, x)
-
+    args = (ln.centre, ln.direction, ln.length)
     for _ in range(10):
         B = np.linalg.svd(v[None])[2][1:].T  # tangent basis of v
-        r = resid(v)
+        r = _offsets(*args, v)
         J = np.empty((len(r), 2))
         for k in range(2):
             e = v + 1e-7 * B[:, k]
-            J[:, k] = (resid(e / np.linalg.norm(e)) - r) / 1e-7
+            J[:, k] = (_offsets(*args, e / np.linalg.norm(e)) - r) / 1e-7
         step = np.linalg.lstsq(J, -r, rcond=None)[0]
         v = v + B @ step
         v /= np.linalg.norm(v)
