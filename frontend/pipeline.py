@@ -72,7 +72,12 @@ from satpose.frontend.ring_choice import (
     transferred_ellipse,
 )
 from satpose.frontend.ring_depth import FrontArcsConfig, fit_front_arcs
-from satpose.frontend.ring_outline import OutlineConfig, OutlineFit, fit_ring_outline
+from satpose.frontend.ring_outline import (
+    OutlineConfig,
+    OutlineFit,
+    fit_ring_outline,
+    inner_edge_points,
+)
 from satpose.frontend.stereo import (
     Circle3D,
     GeometryFailure,
@@ -175,22 +180,54 @@ class StereoRingConfig:
 
 @dataclass(frozen=True, kw_only=True)
 class KnownRing:
-    """A ring whose outer front rim radius the user knows (a standard launch-adapter or
-    docking interface): a prior on the 3-D circle's radius in every fit.
+    """A ring whose dimensions the user knows (a standard launch-adapter or docking
+    interface): a prior on the 3-D circle's radius in every fit, and with the wall height the
+    ring's outline modelled as that cylinder (`satpose.frontend.ring_outline`).
 
     Attributes:
         outer_radius_m: radius of the outer front rim [m].
         radius_sigma_m: its standard deviation (manufacturing, thermal) [m].
+        wall_height_m: height of the wall's outer face, front rim to base [m], or None.
+        height_sigma_m: its standard deviation [m].
+        inner_radius_m: radius of the rim's inner edge [m], or None. With the wall height,
+            the inner edge joins the outline where the wall's outer face shows (there the
+            rim's outer edge lies beside the wall, the inner edge beside the interior).
+        wall_outer_radius_m: a lipped ring's wall radius below the lip [m] (None: the
+            outer radius, no lip), and ``lip_thickness_m`` the lip's thickness [m].
     """
 
     outer_radius_m: float
     radius_sigma_m: float = 0.001
+    wall_height_m: float | None = None
+    height_sigma_m: float = 0.002
+    inner_radius_m: float | None = None
+    wall_outer_radius_m: float | None = None
+    lip_thickness_m: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.outer_radius_m) and self.outer_radius_m > 0):
             raise ValueError(f"known_ring.outer_radius_m must be > 0, got {self.outer_radius_m}")
         if not (math.isfinite(self.radius_sigma_m) and self.radius_sigma_m > 0):
             raise ValueError(f"known_ring.radius_sigma_m must be > 0, got {self.radius_sigma_m}")
+        h = self.wall_height_m
+        if h is not None and not (math.isfinite(h) and h >= 0):
+            raise ValueError(f"known_ring.wall_height_m must be >= 0, got {h}")
+        if not (math.isfinite(self.height_sigma_m) and self.height_sigma_m > 0):
+            raise ValueError(f"known_ring.height_sigma_m must be > 0, got {self.height_sigma_m}")
+        for name in ("inner_radius_m", "wall_outer_radius_m"):
+            r = getattr(self, name)
+            if r is not None and not (math.isfinite(r) and 0 < r <= self.outer_radius_m):
+                raise ValueError(f"known_ring.{name} must be > 0 and <= outer_radius_m, got {r}")
+        t = self.lip_thickness_m
+        if not (math.isfinite(t) and t >= 0):
+            raise ValueError(f"known_ring.lip_thickness_m must be >= 0, got {t}")
+
+    @property
+    def lip(self) -> tuple[float, float]:
+        """``(width, thickness)`` of the lip [m]: zeros without one."""
+        if self.wall_outer_radius_m is None:
+            return (0.0, 0.0)
+        return (self.outer_radius_m - self.wall_outer_radius_m, self.lip_thickness_m)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -618,8 +655,8 @@ class StereoFrontend:
                 tracker.reset()
             obs = {cam: opts[0][0] for cam, opts in options.items() if opts}
         else:
-            if self.config.outline.enabled:
-                circles, chosen = self._ring_outline(circles, chosen, failures)
+            if self.config.outline.enabled or self._height_prior() is not None:
+                circles, chosen = self._ring_outline(circles, imgs, chosen, failures)
             if self.config.rim.enabled:
                 circles, chosen = self._outer_rim(circles, imgs, chosen, failures)
             for cam, (o, pol) in chosen.items():
@@ -820,33 +857,90 @@ class StereoFrontend:
                     continue
         return out
 
-    def _radius_prior(self) -> tuple[float, float] | None:
+    def _radius_prior(
+        self, radius: float | None = None, depth_m: float | None = None
+    ) -> tuple[float, float] | None:
+        """A known ring's radius prior ``(radius, sigma)``: its outer rim's, or with a known
+        inner radius the edge's nearest to ``radius`` (a circle fitted to the rim's inner
+        edge is that edge, concentric and coplanar with the outer one) when the two edges lie
+        apart by more than the ring's edge search (`RingConfig.edge_search_px`, either side)
+        in an image at ``depth_m``: nearer, an edge's points mix both. None: no known ring."""
         known = self.config.stereo_ring.known_ring
-        return None if known is None else (known.outer_radius_m, known.radius_sigma_m)
+        if known is None:
+            return None
+        r_in, r_out = known.inner_radius_m, known.outer_radius_m
+        if radius is not None and r_in is not None and abs(radius - r_in) < abs(radius - r_out):
+            apart_px = (r_out - r_in) * float(self.rig.K_left[0, 0]) / max(depth_m or 0.0, 1e-6)
+            if depth_m is None or apart_px > 2 * self.config.ring.edge_search_px:
+                return (r_in, known.radius_sigma_m)
+        return (r_out, known.radius_sigma_m)
+
+    def _on_inner_edge(self, circle: Circle3D) -> bool:
+        """Whether ``circle`` is a known ring's inner edge (`_radius_prior`)."""
+        known = self.config.stereo_ring.known_ring
+        prior = self._radius_prior(circle.radius)
+        return known is not None and prior is not None and prior[0] != known.outer_radius_m
+
+    def _height_prior(self) -> tuple[float, float] | None:
+        known = self.config.stereo_ring.known_ring
+        if known is None or known.wall_height_m is None:
+            return None
+        return (known.wall_height_m, known.height_sigma_m)
 
     def _ring_outline(
         self,
         circles: list[Circle3D],
+        imgs: dict[str, PreparedImage],
         chosen: dict[str, tuple[EllipseObservation, int]],
         failures: list[str],
     ) -> tuple[list[Circle3D], dict[str, tuple[EllipseObservation, int]]]:
         """Each candidate circle refitted as the front rim of a cylinder whose outline the
         ring's edge points follow (`satpose.frontend.ring_outline`). The ellipses become the
         rim's images with the edge points on the outline's rim arcs. A candidate whose fit
-        fails keeps its circle, and the frame says so."""
+        fails keeps its circle, and the frame says so. A known ring with its inner radius
+        (and wall height) is refitted with the rim's inner edge (`inner_edge_points`)."""
         cfg = self.config
+        if self._on_inner_edge(circles[0]):
+            return circles, chosen  # a known ring's inner edge: no outline to fit
         pts = (chosen["left"][0].edge_points_px, chosen["right"][0].edge_points_px)
+        known = cfg.stereo_ring.known_ring
         fits: list[tuple[float, Circle3D, OutlineFit]] = []
         reasons = []
+        radius_prior, height_prior = self._radius_prior(), self._height_prior()
+        lip = (0.0, 0.0) if known is None else known.lip
+
+        def fit(circ: Circle3D, inner: tuple[np.ndarray, np.ndarray, float] | None) -> OutlineFit:
+            return fit_ring_outline(
+                self.rig,
+                circ,
+                pts[0],
+                pts[1],
+                cfg.outline,
+                radius_prior=radius_prior,
+                height_prior=height_prior,
+                inner=inner,
+                lip=lip,
+            )
+
         for circ in circles:
             try:
-                fit = fit_ring_outline(
-                    self.rig, circ, pts[0], pts[1], cfg.outline, radius_prior=self._radius_prior()
-                )
+                outline = fit(circ, None)
+                if known is not None and known.inner_radius_m is not None and height_prior:
+                    width = known.outer_radius_m - known.inner_radius_m
+                    images_s = tuple(
+                        smoothed(imgs[cam].gray, cfg.ring.edges) for cam in ("left", "right")
+                    )
+                    inner = inner_edge_points(
+                        self.rig, outline.circle, width, (images_s[0], images_s[1]), cfg.ring.edges
+                    )
+                    if min(len(p) for p in inner) >= 6:
+                        outline = fit(outline.circle, (inner[0], inner[1], width))
             except (GeometryFailure, ConicError, np.linalg.LinAlgError) as exc:
                 reasons.append(str(exc))
                 continue
-            fits.append((fit.cost, _inflate(fit.circle, cfg.stereo_ring, self.rig), fit))
+            fits.append(
+                (outline.cost, _inflate(outline.circle, cfg.stereo_ring, self.rig), outline)
+            )
         if not fits:
             failures.append(f"ring: {reasons[0]}; the all-edges circle was kept")
             return circles, chosen
@@ -878,6 +972,8 @@ class StereoFrontend:
             )
             for cam in ("left", "right")
         )
+        if self._on_inner_edge(circles[0]):
+            return circles, chosen  # a known ring's inner edge: no outer rim to refit
         prior = self._radius_prior()
         fits: list[tuple[float, Circle3D, RimFit | None]] = []
         reasons = []
@@ -918,7 +1014,7 @@ class StereoFrontend:
             obs["left"].edge_points_px,
             obs["right"].edge_points_px,
             self.config.front_arcs,
-            radius_prior=self._radius_prior(),
+            radius_prior=self._radius_prior(circle.radius),
         )
         return circle if fit is None else _inflate(fit.circle, self.config.stereo_ring, self.rig)
 
@@ -970,15 +1066,18 @@ class StereoFrontend:
                     left.edge_points_px,
                     right.edge_points_px,
                     iterations=6,
-                    radius_prior=self._radius_prior(),
+                    # a known ring: the radius of its edge nearest this start
+                    radius_prior=self._radius_prior(radius, float(X[0][2])),
                 )
             except GeometryFailure:
                 continue
             rms = circle_rms(self.rig, circ, left.edge_points_px, right.edge_points_px)
             if rms > cfg.max_rms_px:
                 continue
-            if self._radii and circ.radius < float(np.median(self._radii)) * (
-                1 - cfg.max_radius_change
+            if (
+                cfg.known_ring is None
+                and self._radii
+                and circ.radius < float(np.median(self._radii)) * (1 - cfg.max_radius_change)
             ):
                 continue  # smaller than the ring seen so far: an inner edge, not the outer one
             if cfg.known_ring is None and circ.radius < cfg.min_radius_m:

@@ -19,8 +19,17 @@ fits ``(c, n, r, h)`` to both cameras' edge points by the points' signed distanc
 of the two projected circles, robustly (Huber weights, the scale from the residuals' MAD),
 from several starting heights, with ``h >= 0``. Where the edges follow the rim on the visible
 side instead (the crease between the rim's face and the wall), the fit finds ``h = 0`` and is
-the plain circle fit. The wall height needs no prior (non-cooperative); a known one
-(``known ring``) can be stated as one.
+the plain circle fit. The wall height needs no prior (non-cooperative).
+
+A known ring (`satpose.frontend.pipeline.KnownRing`: a standard interface whose dimensions
+the user states) makes the model rigid: its radius and wall height are priors, a lip's width
+and thickness shape the hull (the wall and base narrower than the rim, the lip's lower edge a
+third circle). With the height fixed, the base's arc no longer moves toward edges that lie on
+the rim, so each point beside the base's arc or a silhouette that lies nearer the rim's own
+image is labelled the crease between rim and wall and measured to the rim (where the rim and
+the wall differ in brightness the edge search finds that crease, not the outline). With the
+inner radius, `inner_edge_points` adds the rim's inner edge where the wall's outer face shows:
+there the outer edge lies beside the wall, while the inner edge lies beside the interior.
 """
 
 from __future__ import annotations
@@ -32,6 +41,8 @@ import cv2
 import numpy as np
 
 from satpose.datasets.geometry import Rigid3
+from satpose.frontend.conics import circle_to_conic, sampson_distance
+from satpose.frontend.edges import EdgeSearchConfig, edges_of_polarity
 from satpose.frontend.measurements import Camera
 from satpose.frontend.stereo import (
     Circle3D,
@@ -112,12 +123,26 @@ def _project(K: np.ndarray, T: Rigid3, X: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:]
 
 
-def _samples(c: np.ndarray, n: np.ndarray, r: float, h: float, samples: int) -> np.ndarray:
-    """``samples`` points of the rim, then as many of the base (2 * samples, 3)."""
+def _samples(
+    c: np.ndarray,
+    n: np.ndarray,
+    r: float,
+    h: float,
+    samples: int,
+    lip: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
+    """``samples`` points of the rim, then as many of the base ((2 or 3) * samples, 3). With
+    a ``lip`` ``(width, thickness)`` the wall (and base) is ``width`` narrower than the rim,
+    and the lip's lower edge (the rim's circle ``thickness`` back) follows as a third circle.
+    """
     u, v = tangent_basis(n)
     phi = np.linspace(0.0, 2.0 * math.pi, samples, endpoint=False)
-    ring = r * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v)
-    return np.vstack([c + ring, c - h * n + ring])
+    unit = np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v
+    width, thickness = lip
+    parts = [c + r * unit, c - h * n + (r - width) * unit]
+    if thickness > 0:
+        parts.append(c - thickness * n + r * unit)
+    return np.vstack(parts)
 
 
 def outline_hull(
@@ -128,10 +153,12 @@ def outline_hull(
     radius: float,
     height: float,
     samples: int,
+    lip: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[np.ndarray, np.ndarray]:
     """The image outline of the cylinder: hull vertices (M, 2) in counter-clockwise order of
-    angle about their mean, and per vertex whether it lies on the base (else on the rim)."""
-    px = _project(K, T, _samples(center, normal, radius, height, samples))
+    angle about their mean, and per vertex whether it lies on the base or the lip's lower
+    edge (else on the rim)."""
+    px = _project(K, T, _samples(center, normal, radius, height, samples, lip))
     idx = _hull_indices(px)
     return px[idx], idx >= samples
 
@@ -202,6 +229,18 @@ def _unpack(x: np.ndarray, s: _State) -> _State:
     return _State(s.c + x[:3], n / np.linalg.norm(n), s.r * math.exp(x[5]), s.h + x[6] * s.r)
 
 
+def _inner_distances(
+    K: np.ndarray, T: Rigid3, s: _State, width: float, points: np.ndarray
+) -> np.ndarray:
+    """Signed distances [px] (> 0 outside) of ``points`` to the image of the rim's inner
+    edge (the circle ``width`` smaller, concentric, in the rim's plane) in the camera ``K``
+    posed ``T`` (cam_from_left)."""
+    u, v = tangent_basis(s.n)
+    circle_frame = Rigid3(R=np.column_stack([u, v, s.n]), t=s.c)
+    C = circle_to_conic(K, T @ circle_frame, max(s.r - width, 1e-6))
+    return sampson_distance(points, C)
+
+
 def fit_ring_outline(
     rig: StereoRig,
     circle: Circle3D,
@@ -209,6 +248,9 @@ def fit_ring_outline(
     right_points: np.ndarray,
     config: OutlineConfig,
     radius_prior: tuple[float, float] | None = None,
+    height_prior: tuple[float, float] | None = None,
+    inner: tuple[np.ndarray, np.ndarray, float] | None = None,
+    lip: tuple[float, float] = (0.0, 0.0),
 ) -> OutlineFit:
     """Fit the front rim and the wall height to both images' ring edge points (module doc).
 
@@ -216,6 +258,11 @@ def fit_ring_outline(
         circle: a start (the circle of all edge points).
         left_points, right_points: (N, 2) undistorted edge points near the ring's outline.
         radius_prior: ``(radius_m, sigma_m)`` of a known outer radius.
+        height_prior: ``(height_m, sigma_m)`` of a known wall height (rim to base).
+        inner: ``(left, right, width_m)``: undistorted edge points (N, 2) of the rim's inner
+            edge, a circle concentric with the rim in its plane and ``width_m`` smaller (a
+            known ring's rim width), measured by each point's distance to its image.
+        lip: a known ring's lip ``(width, thickness)`` [m] (`_samples`); zeros: none.
 
     Raises:
         GeometryFailure: too few points, or no start converged to a finite outline.
@@ -224,6 +271,12 @@ def fit_ring_outline(
         (rig.intrinsics(c), rig.cam_from_left(c), np.asarray(p, float).reshape(-1, 2))
         for c, p in ((Camera.LEFT, left_points), (Camera.RIGHT, right_points))
     )
+    inner_pts = (
+        (np.zeros((0, 2)), np.zeros((0, 2)))
+        if inner is None
+        else tuple(np.asarray(p, float).reshape(-1, 2) for p in inner[:2])
+    )
+    width = 0.0 if inner is None else float(inner[2])
     if min(len(p) for _, _, p in cams) < 12:
         raise GeometryFailure("ring outline: too few edge points")
     n0 = np.asarray(circle.normal, float)
@@ -247,9 +300,9 @@ def fit_ring_outline(
                 dx = np.zeros(7)
                 dx[k] = steps[k]
                 states.append(_unpack(dx, s))
-        X = [_samples(t.c, t.n, t.r, t.h, S) for t in states]
+        X = [_samples(t.c, t.n, t.r, t.h, S, lip) for t in states]
         res, kinds, jac = [], [], []
-        for K, T, p in cams:
+        for (K, T, p), q_in in zip(cams, inner_pts, strict=True):
             px = [_project(K, T, x) for x in X]
             idx = _hull_indices(px[0])
             hull = px[0][idx]
@@ -257,40 +310,79 @@ def fit_ring_outline(
             ia, ib = idx[seg], idx[(seg + 1) % len(idx)]
             inside = hull.mean(axis=0)[None]
             r0 = _line_distances(p, px[0][ia], px[0][ib], inside)
-            res.append(r0)
-            kinds.append(_segment_kinds(idx >= S, seg))
+            kind = _segment_kinds(idx >= S, seg)
+            crease = np.zeros(len(p), bool)
+            if height_prior is not None:
+                # a known height fixes where the base's arc lies; a point beside it that lies
+                # nearer the rim's own image is the crease between rim and wall (kind 4)
+                d_rim = [_inner_distances(K, T, t, 0.0, p) for t in states]
+                crease = (kind != 0) & (np.abs(d_rim[0]) < np.abs(r0))
+                kind = np.where(crease, 4, kind)
+            res.append(np.where(crease, d_rim[0], r0) if crease.any() else r0)
+            kinds.append(kind)
             if jacobian:
                 cols = [
                     (_line_distances(p, q[ia], q[ib], inside) - r0) / steps[j]
                     for j, q in enumerate(px[1:])
                 ]
+                if crease.any():
+                    cols = [
+                        np.where(crease, (d_rim[j + 1] - d_rim[0]) / steps[j], col)
+                        for j, col in enumerate(cols)
+                    ]
                 jac.append(np.stack(cols, axis=1))
+            if len(q_in):
+                d = [_inner_distances(K, T, t, width, q_in) for t in states]
+                res.append(d[0])
+                kinds.append(np.full(len(q_in), 3))
+                if jacobian:
+                    jac.append(np.stack([(dk - d[0]) / steps[j] for j, dk in enumerate(d[1:])], 1))
         J = np.vstack(jac) if jacobian else np.zeros((0, 7))
         return np.concatenate(res), np.concatenate(kinds), J
 
-    def prior_row(s: _State, scale: float) -> tuple[float, np.ndarray] | None:
-        if radius_prior is None:
-            return None
-        radius_m, sigma_m = radius_prior
-        row = np.zeros(7)
-        row[5] = scale * s.r / sigma_m
-        return scale * (s.r - radius_m) / sigma_m, row
+    def prior_rows(s: _State, scale: float) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened residuals (k,) and Jacobian rows (k, 7) of the known radius and height,
+        in units of the points' robust sigma ``scale``."""
+        res, rows = [], []
+        if radius_prior is not None:
+            radius_m, sigma_m = radius_prior
+            row = np.zeros(7)
+            row[5] = scale * s.r / sigma_m
+            res.append(scale * (s.r - radius_m) / sigma_m)
+            rows.append(row)
+        if height_prior is not None:
+            height_m, sigma_m = height_prior
+            row = np.zeros(7)
+            row[6] = scale * s.r / sigma_m
+            res.append(scale * (s.h - height_m) / sigma_m)
+            rows.append(row)
+        return np.asarray(res, float), np.asarray(rows, float).reshape(-1, 7)
+
+    def weights(r: np.ndarray, sigma: float) -> np.ndarray:
+        """Huber's weights; with a known height Tukey's biweight (4.685 sigma), so that what
+        the rigid model does not explain (a shadow's edge beyond the outline) does not pull."""
+        if height_prior is None:
+            return np.minimum(1.0, config.huber_k * sigma / np.maximum(np.abs(r), 1e-12))
+        u = r / (4.685 * sigma)
+        return np.where(np.abs(u) < 1.0, (1.0 - u**2) ** 2, 0.0)
 
     best: tuple[float, _State, np.ndarray, np.ndarray, float] | None = None
-    for h_start in config.height_starts:
-        s = _State(
-            np.asarray(circle.center, float), n0, float(circle.radius), h_start * circle.radius
-        )
+    # a known height is the one start; otherwise each of the config's, in ring radii
+    starts = (
+        [height_prior[0]]
+        if height_prior is not None
+        else [h * circle.radius for h in config.height_starts]
+    )
+    for h_start in starts:
+        s = _State(np.asarray(circle.center, float), n0, float(circle.radius), h_start)
         try:
             for _ in range(config.iterations):
                 r0, _, J = linearise(s, True)
                 sigma = max(1.4826 * float(np.median(np.abs(r0))), 0.05)
-                w = np.minimum(1.0, config.huber_k * sigma / np.maximum(np.abs(r0), 1e-12))
-                sw = np.sqrt(w)
+                sw = np.sqrt(weights(r0, sigma))
                 A, b = J * sw[:, None], -r0 * sw
-                pr = prior_row(s, sigma)
-                if pr is not None:
-                    A, b = np.vstack([A, pr[1]]), np.r_[b, -pr[0]]
+                pres, prows = prior_rows(s, sigma)
+                A, b = np.vstack([A, prows]), np.r_[b, -pres]
                 step = np.linalg.lstsq(A, b, rcond=None)[0]
                 if not np.all(np.isfinite(step)):
                     raise GeometryFailure("ring outline: non-finite step")
@@ -320,21 +412,25 @@ def fit_ring_outline(
         raise GeometryFailure("ring outline: no start converged")
     cost, s, res, kinds, sigma = best
     # covariance at the optimum (weighted Gauss-Newton), marginal over the height
-    w = np.minimum(1.0, config.huber_k * sigma / np.maximum(np.abs(res), 1e-12))
+    w = weights(res, sigma)
     _, _, J = linearise(s, True)
     A = J * np.sqrt(w)[:, None]
     H = A.T @ A
-    pr = prior_row(s, sigma)
-    if pr is not None:
-        H += np.outer(pr[1], pr[1])
+    prows = prior_rows(s, sigma)[1]
+    H += prows.T @ prows
     try:
         cov = np.linalg.inv(H) * sigma**2
     except np.linalg.LinAlgError:
         raise GeometryFailure("ring outline: the fit is not constrained by its points") from None
     cov7 = circle_covariance(cov[:6, :6], s.n, s.r)
+    m_left = n_left + len(inner_pts[0])  # the left camera's residuals: outline, then inner
+    n_right = len(cams[1][2])
+    on_rim = (kinds == 0) | (kinds == 4)  # the rim's arc of the outline, or the crease
     rim_pts = (
-        cams[0][2][(kinds[:n_left] == 0) & (np.abs(res[:n_left]) < 3 * sigma)],
-        cams[1][2][(kinds[n_left:] == 0) & (np.abs(res[n_left:]) < 3 * sigma)],
+        cams[0][2][on_rim[:n_left] & (np.abs(res[:n_left]) < 3 * sigma)],
+        cams[1][2][
+            on_rim[m_left : m_left + n_right] & (np.abs(res[m_left : m_left + n_right]) < 3 * sigma)
+        ],
     )
     return OutlineFit(
         circle=Circle3D(center=s.c, normal=s.n, radius=s.r, covariance=cov7),
@@ -344,3 +440,52 @@ def fit_ring_outline(
         rms_px=float(np.sqrt(np.mean(np.minimum(np.abs(res), 3 * sigma) ** 2))),
         cost=cost,
     )
+
+
+def inner_edge_points(
+    rig: StereoRig,
+    circle: Circle3D,
+    width_m: float,
+    images_s: tuple[np.ndarray, np.ndarray],
+    edges: EdgeSearchConfig,
+    *,
+    samples: int = 360,
+    half_px: float = 1.5,
+    margin_deg: float = 5.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per camera (left, right), the rim's inner edge where it is the ring's occluding edge.
+
+    The inner edge is the circle ``width_m`` (a known ring's rim width) inside the rim,
+    concentric, in its plane. Where the wall's outer face is turned toward a camera, its inner
+    face is turned away, and the inner edge lies between the rim's face and the ring's
+    interior, with no wall beside it: there (``margin_deg`` from the turn) each camera's
+    smoothed image ``images_s`` is searched along the edge's normals, ``half_px`` either side,
+    for an edge of either sign. Samples whose rim face is narrower than ``2 half_px + 1`` px in
+    the image are skipped (the outer edge would be in reach).
+
+    Returns:
+        (N, 2) undistorted edge points per camera (N may be 0).
+    """
+    u, v = tangent_basis(circle.normal)
+    phi = np.linspace(0.0, 2.0 * math.pi, samples, endpoint=False)
+    rho = np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v
+    r_in = circle.radius - width_m
+    if r_in <= 0:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    inner = circle.center + r_in * rho
+    outer = circle.center + circle.radius * rho
+    out = []
+    for cam, image_s in zip((Camera.LEFT, Camera.RIGHT), images_s, strict=True):
+        view = rig.center(cam) - inner
+        facing = np.einsum("ij,ij->i", rho, view) / np.linalg.norm(view, axis=1)
+        p_in = rig.project_into(cam, inner)
+        d = rig.project_into(cam, outer) - p_in
+        face_px = np.linalg.norm(d, axis=1)
+        keep = (facing > math.sin(math.radians(margin_deg))) & (face_px >= 2 * half_px + 1)
+        if not np.any(keep):
+            out.append(np.zeros((0, 2)))
+            continue
+        nrm = d[keep] / face_px[keep, None]
+        pts = edges_of_polarity(image_s, p_in[keep], nrm, 0, half_px, edges)
+        out.append(pts[np.all(np.isfinite(pts), axis=1)])
+    return out[0], out[1]

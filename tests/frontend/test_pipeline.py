@@ -298,3 +298,47 @@ def test_side_lit_ring_is_not_taken_on_its_inner_edge(tmp_path: Path) -> None:
     radii = [m.ring.radius_m for m in map(fe.process_frame, seq) if m.ring is not None]
     assert len(radii) >= 1
     assert all(abs(r - 0.30) < 0.03 for r in radii), radii
+
+
+def test_a_known_ring_from_a_config_file_is_used_as_a_model(
+    docking_small: Path, tmp_path: Path
+) -> None:
+    """The ring's dimensions stated as a user would (outer and inner radius, wall height, in
+    the run config's YAML): the frontend fits the outline of that cylinder and still finds
+    the ring in every frame, its centre within 2 cm of the truth (6 frames at 4.5 m; the
+    per-frame bar of tests above)."""
+    from satpose.datasets.config import load_config
+    from satpose.tools.pipeline import PipelineConfig
+
+    seq = load_sequence(docking_small)
+    ring = seq.target.ring
+    yaml_text = (
+        "frontend:\n  stereo_ring:\n    known_ring:\n"
+        f"      outer_radius_m: {ring.radius_m}\n"
+        f"      inner_radius_m: {ring.extras['inner_radius_m']}\n"
+        f"      wall_height_m: {ring.extras['height_m']}\n"
+    )
+    (tmp_path / "known.yaml").write_text(yaml_text)
+    cfg = load_config(PipelineConfig, tmp_path / "known.yaml").frontend
+    assert cfg.stereo_ring.known_ring is not None
+    assert cfg.stereo_ring.known_ring.wall_height_m == pytest.approx(ring.extras["height_m"])
+    fe = StereoFrontend(seq.calibration, cfg)
+    for i, frame in enumerate(seq):
+        m = fe.process_frame(frame)
+        assert m.ring is not None, m.failures
+        assert np.linalg.norm(m.ring.center_m - seq.truth.pose(i).t) < 0.02
+
+
+def test_impossible_known_ring_dimensions_name_their_field() -> None:
+    from satpose.frontend.pipeline import KnownRing
+
+    with pytest.raises(ValueError, match=r"known_ring\.inner_radius_m"):
+        KnownRing(outer_radius_m=0.5, inner_radius_m=0.6)
+    with pytest.raises(ValueError, match=r"known_ring\.wall_height_m"):
+        KnownRing(outer_radius_m=0.5, wall_height_m=-0.1)
+    with pytest.raises(ValueError, match=r"known_ring\.lip_thickness_m"):
+        KnownRing(outer_radius_m=0.5, lip_thickness_m=float("nan"))
+    assert KnownRing(outer_radius_m=0.5, wall_outer_radius_m=0.48, lip_thickness_m=0.01).lip == (
+        pytest.approx(0.02),
+        0.01,
+    )
