@@ -18,7 +18,9 @@ filter) with the configurations below and scores them with `satpose eval`:
 - ``rim only``: the frontend's rim-only refit (``rim.enabled``).
 - both.
 - ``known ring radius``: the user states the interface's outer rim radius
-  (``stereo_ring.known_ring``: 0.5 m, sigma 1 mm): how much that helps; also with the outline.
+  (``stereo_ring.known_ring``: 0.5 m, sigma 1 mm): how much that helps; also with the outline;
+  with the wall height (0.10 m: the outline modelled as that cylinder); and with the rim's
+  inner radius (0.47 m: its inner edge where the wall shows).
 
 Writes docs/results/launch_adapter.md.
 """
@@ -44,6 +46,10 @@ from satpose.tools.pipeline import PipelineConfig, run_pipeline
 
 RADIUS_M = 0.5
 """The ring's outer front rim radius [m]."""
+HEIGHT_M = 0.10
+"""Its wall height, front rim to base [m]."""
+INNER_RADIUS_M = 0.47
+"""The rim's inner radius [m]: a flat rim 3 cm wide."""
 
 
 def scenario(frames: int, size: tuple[int, int], spp: int) -> Any:
@@ -52,8 +58,8 @@ def scenario(frames: int, size: tuple[int, int], spp: int) -> Any:
     ring = replace(
         t.ring,
         outer_radius_m=RADIUS_M,
-        inner_radius_m=0.47,
-        height_m=0.10,
+        inner_radius_m=INNER_RADIUS_M,
+        height_m=HEIGHT_M,
         rim_fillet_m=0.0,
         lip_width_m=0.0,
         lip_thickness_m=0.0,
@@ -77,7 +83,6 @@ def scenario(frames: int, size: tuple[int, int], spp: int) -> Any:
         rotation_center_m=None,
     )
     light = LightConfig(kind="point", position_m=(0.15, -0.12, 0.0), intensity=50.0)
-    # a flat rim 3 cm wide: inner radius 0.47 m (set above)
     s = replace(base, name="launch-adapter", target=target, motion=motion, light=light)
     s = scaled(s, frames=frames, size=size, spp=spp)
     return metered(s, float(validity(s).light_incidence_deg[0]))
@@ -97,10 +102,16 @@ def _outline(c: PipelineConfig) -> PipelineConfig:
     return replace(c, frontend=replace(c.frontend, outline=o))
 
 
-def _known(c: PipelineConfig) -> PipelineConfig:
+def _known(c: PipelineConfig, height: bool = False, inner: bool = False) -> PipelineConfig:
     """The user states the interface's outer rim radius (0.5 m, 1 mm sigma):
-    ``stereo_ring.known_ring``."""
-    sr = replace(c.frontend.stereo_ring, known_ring=KnownRing(outer_radius_m=RADIUS_M))
+    ``stereo_ring.known_ring``; with ``height`` the wall height too (0.10 m, 2 mm: the outline
+    modelled as that cylinder), with ``inner`` the rim's inner radius (0.47 m)."""
+    known = KnownRing(
+        outer_radius_m=RADIUS_M,
+        wall_height_m=HEIGHT_M if height else None,
+        inner_radius_m=INNER_RADIUS_M if inner else None,
+    )
+    sr = replace(c.frontend.stereo_ring, known_ring=known)
     return replace(c, frontend=replace(c.frontend, stereo_ring=sr))
 
 
@@ -108,6 +119,8 @@ CONFIGS = {
     "default": lambda c: c,
     "known ring radius": _known,
     "known ring radius + outline": lambda c: _known(_outline(c)),
+    "known ring radius + height": lambda c: _known(c, height=True),
+    "known ring radius + height + inner radius": lambda c: _known(c, height=True, inner=True),
     "outline": _outline,
     "outline + disparity bias 0.2 px": lambda c: _bias(_outline(c), 0.2),
     "disparity bias 0.2 px": lambda c: _bias(c, 0.2),

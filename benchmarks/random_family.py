@@ -43,6 +43,7 @@ from satpose.datasets.scenarios import LightConfig, RigConfig, Scenario, rim_in_
 from satpose.datasets.seed_split import TUNING_SEEDS, VALIDATION_SEEDS
 from satpose.datasets.sequence import load_sequence
 from satpose.frontend.conics import circle_to_conic, conic_to_ellipse
+from satpose.frontend.pipeline import KnownRing
 from satpose.tools.evaluate import evaluate_run
 from satpose.tools.files import read_measurements
 from satpose.tools.pipeline import PipelineConfig, run_pipeline
@@ -101,10 +102,26 @@ def lit_rim(c: PipelineConfig, light: LightConfig) -> PipelineConfig:
     return replace(c, frontend=replace(c.frontend, rim=rim))
 
 
+def known_ring(scenario: Scenario, what: str) -> KnownRing:
+    """The member's ring as its user would state it (`KnownRing`, default sigmas): its outer
+    radius (``what`` = ``radius``), or (``full``) also its inner radius, wall height, and a
+    lip's width and thickness."""
+    r = scenario.target.ring
+    if what == "radius":
+        return KnownRing(outer_radius_m=r.outer_radius_m)
+    return KnownRing(
+        outer_radius_m=r.outer_radius_m,
+        wall_height_m=r.height_m,
+        inner_radius_m=r.inner_radius_m,
+        wall_outer_radius_m=r.outer_radius_m - r.lip_width_m if r.lip_width_m > 0 else None,
+        lip_thickness_m=r.lip_thickness_m if r.lip_width_m > 0 else 0.0,
+    )
+
+
 def pipeline_config(args: argparse.Namespace, scenario: Scenario) -> PipelineConfig:
     """The default `satpose run` configuration (or ``--config``'s), with
-    ``--disparity-bias``, ``--largest-ring`` and ``--lit-rim`` (the light from ``scenario``:
-    a lamp's with ``lamp``, a lamp's or the sun's with ``all``) if given."""
+    ``--disparity-bias``, ``--largest-ring``, ``--known-ring`` and ``--lit-rim`` (the light
+    from ``scenario``: a lamp's with ``lamp``, a lamp's or the sun's with ``all``) if given."""
     c = load_config(PipelineConfig, args.config) if args.config else PipelineConfig()
     if args.interpolation is not None:
         pre = replace(c.frontend.preprocess, interpolation=args.interpolation)
@@ -113,6 +130,9 @@ def pipeline_config(args: argparse.Namespace, scenario: Scenario) -> PipelineCon
         c = lit_rim(c, scenario.light)
     if args.largest_ring:
         sr = replace(c.frontend.stereo_ring, behind_sigma=None)
+        c = replace(c, frontend=replace(c.frontend, stereo_ring=sr))
+    if args.known_ring:
+        sr = replace(c.frontend.stereo_ring, known_ring=known_ring(scenario, args.known_ring))
         c = replace(c, frontend=replace(c.frontend, stereo_ring=sr))
     if args.disparity_bias is None and args.landmark_bias is None and args.consider is None:
         return c
@@ -127,12 +147,13 @@ def pipeline_config(args: argparse.Namespace, scenario: Scenario) -> PipelineCon
 
 def variant_words(args: argparse.Namespace) -> list[str]:
     """The words that name a scored variant in its run folders and its page's name (the
-    options that change what is run: ``--lit-rim``, ``--interpolation``, ``--consider``,
-    ``--config``)."""
+    options that change what is run: ``--lit-rim``, ``--known-ring``, ``--interpolation``,
+    ``--consider``, ``--config``)."""
     return [
         w
         for w in (
             f"lit_rim_{args.lit_rim}" if args.lit_rim else "",
+            f"known_{args.known_ring}" if args.known_ring else "",
             args.interpolation or "",
             "consider" if args.consider is not None else "",
             args.config.stem if args.config is not None else "",
@@ -403,6 +424,13 @@ def main() -> None:
         help="the ring refitted where no shadow of it shows beside the rim (rim.labels: light, "
         "the scene's light stated as the user would; docs/frontend.md): in the lamp-lit "
         "scenes only, or in all (the sun's direction too)",
+    )
+    parser.add_argument(
+        "--known-ring",
+        choices=["radius", "full"],
+        help="state each member's ring as a user of a standard interface would "
+        "(stereo_ring.known_ring): its outer radius, or its full dimensions (outer and inner "
+        "radius, wall height, lip)",
     )
     parser.add_argument(
         "--interpolation",

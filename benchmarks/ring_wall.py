@@ -16,6 +16,10 @@ Variants (`satpose.frontend.pipeline.FrontendConfig`):
   (``ring.edges.dark_band``, `satpose.frontend.edges`).
 - ``known radius``: ``stereo_ring.known_ring`` with the true outer radius, sigma 1 mm.
 - ``known + rim only``: both.
+- ``known + outline``: the known radius with the outline model (the wall height free).
+- ``known radius+height``: the known radius, wall height and lip: the outline modelled as
+  that cylinder, edges nearer the rim's image taken as the rim (`KnownRing`).
+- ``known ring``: and the rim's inner radius (its inner edge where the wall shows).
 
 Renders are shared with benchmarks/random_family.py (same cache names under ``--root``).
 Validation seeds are only scored: never change a parameter because of what they show.
@@ -38,24 +42,46 @@ from satpose.datasets.random_family import random_draw
 from satpose.datasets.render import render_sequence
 from satpose.datasets.scenarios import scaled
 from satpose.datasets.seed_split import TUNING_SEEDS, VALIDATION_SEEDS
-from satpose.datasets.sequence import load_sequence
+from satpose.datasets.sequence import Ring, load_sequence
 from satpose.frontend.conics import circle_to_conic, sampson_distance
 from satpose.frontend.measurements import FrameMeasurements
 from satpose.frontend.pipeline import FrontendConfig, KnownRing, StereoFrontend
 from satpose.frontend.rim import rim_labels
 from satpose.frontend.stereo import Circle3D, StereoRig
 
-VARIANTS = ("all edges", "outline", "rim only", "dark band", "known radius", "known + rim only")
+VARIANTS = (
+    "all edges",
+    "outline",
+    "rim only",
+    "dark band",
+    "known radius",
+    "known + rim only",
+    "known + outline",
+    "known radius+height",
+    "known ring",
+)
 
 
-def config(variant: str, radius_m: float) -> FrontendConfig:
+def config(variant: str, ring: Ring) -> FrontendConfig:
+    """The frontend of ``variant``; the ``known`` variants state the true ``ring`` as a user
+    of a standard interface would: its outer radius (1 mm), with ``known radius+height`` its
+    wall height and lip, with ``known ring`` its inner radius too."""
     c = FrontendConfig()
     c = replace(c, rim=replace(c.rim, enabled="rim only" in variant))
     c = replace(c, outline=replace(c.outline, enabled="outline" in variant))
     if variant == "dark band":
         c = replace(c, ring=replace(c.ring, edges=replace(c.ring.edges, dark_band=True)))
     if variant.startswith("known"):
-        known = KnownRing(outer_radius_m=radius_m, radius_sigma_m=0.001)
+        ex = ring.extras
+        full = variant in ("known radius+height", "known ring")
+        known = KnownRing(
+            outer_radius_m=ring.radius_m,
+            radius_sigma_m=0.001,
+            wall_height_m=float(ex["height_m"]) if full else None,
+            inner_radius_m=float(ex["inner_radius_m"]) if variant == "known ring" else None,
+            wall_outer_radius_m=ex.get("wall_outer_radius_m") if full else None,
+            lip_thickness_m=float(ex.get("lip_thickness_m", 0.0)) if full else 0.0,
+        )
         c = replace(c, stereo_ring=replace(c.stereo_ring, known_ring=known))
     return c
 
@@ -88,7 +114,7 @@ def measure(seq_path: Path, variant: str) -> dict[str, Any]:
     seq = load_sequence(seq_path)
     assert seq.truth is not None and seq.target is not None and seq.target.ring is not None
     radius = seq.target.ring.radius_m
-    fe = StereoFrontend(seq.calibration, config(variant, radius))
+    fe = StereoFrontend(seq.calibration, config(variant, seq.target.ring))
     depth, lateral, dr = [], [], []
     sides: dict[str, list[np.ndarray]] = {}
     for frame in seq:
