@@ -344,18 +344,13 @@ def fit_ring_outline(
         """Whitened residuals (k,) and Jacobian rows (k, 7) of the known radius and height,
         in units of the points' robust sigma ``scale``."""
         res, rows = [], []
-        if radius_prior is not None:
-            radius_m, sigma_m = radius_prior
-            row = np.zeros(7)
-            row[5] = scale * s.r / sigma_m
-            res.append(scale * (s.r - radius_m) / sigma_m)
-            rows.append(row)
-        if height_prior is not None:
-            height_m, sigma_m = height_prior
-            row = np.zeros(7)
-            row[6] = scale * s.r / sigma_m
-            res.append(scale * (s.h - height_m) / sigma_m)
-            rows.append(row)
+        # (prior, its parameter's value, its column: log-radius 5, height / radius 6)
+        for prior, value, col in ((radius_prior, s.r, 5), (height_prior, s.h, 6)):
+            if prior is not None:
+                row = np.zeros(7)
+                row[col] = scale * s.r / prior[1]  # d value / d parameter = r for both
+                res.append(scale * (value - prior[0]) / prior[1])
+                rows.append(row)
         return np.asarray(res, float), np.asarray(rows, float).reshape(-1, 7)
 
     def weights(r: np.ndarray, sigma: float) -> np.ndarray:
