@@ -194,6 +194,10 @@ class KnownRing:
             rim's outer edge lies beside the wall, the inner edge beside the interior).
         wall_outer_radius_m: a lipped ring's wall radius below the lip [m] (None: the
             outer radius, no lip), and ``lip_thickness_m`` the lip's thickness [m].
+        edge_tolerance: a circle is taken for the rim's inner edge only if its radius,
+            fitted without a prior, lies within this fraction of the inner radius (one edge's
+            measured radius varies by < 1 %, docs/backend.md "Circles"); a curve of another
+            size near it (a shadow inside the ring) is refused, not forced to that radius.
     """
 
     outer_radius_m: float
@@ -203,6 +207,7 @@ class KnownRing:
     inner_radius_m: float | None = None
     wall_outer_radius_m: float | None = None
     lip_thickness_m: float = 0.0
+    edge_tolerance: float = 0.01
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.outer_radius_m) and self.outer_radius_m > 0):
@@ -221,6 +226,9 @@ class KnownRing:
         t = self.lip_thickness_m
         if not (math.isfinite(t) and t >= 0):
             raise ValueError(f"known_ring.lip_thickness_m must be >= 0, got {t}")
+        e = self.edge_tolerance
+        if not (math.isfinite(e) and 0 < e < 1):
+            raise ValueError(f"known_ring.edge_tolerance must be in (0, 1), got {e}")
 
     @property
     def lip(self) -> tuple[float, float]:
@@ -1057,7 +1065,23 @@ class StereoFrontend:
             radius = float(
                 np.linalg.norm(X[0]) / circle_scale(self.rig.K_left, left.conic, n_l, d_l)
             )
+            # a known ring: the radius of its edge nearest this start
+            prior = self._radius_prior(radius, float(X[0][2]))
             try:
+                if prior is not None and cfg.known_ring is not None:
+                    if prior[0] != cfg.known_ring.outer_radius_m:
+                        # the inner edge only if the circle is that edge by its own radius
+                        free = refine_circle(
+                            self.rig,
+                            X[0],
+                            n_l,
+                            radius,
+                            left.edge_points_px,
+                            right.edge_points_px,
+                            iterations=6,
+                        )
+                        if abs(free.radius - prior[0]) > cfg.known_ring.edge_tolerance * prior[0]:
+                            continue
                 circ = refine_circle(
                     self.rig,
                     X[0],
@@ -1066,8 +1090,7 @@ class StereoFrontend:
                     left.edge_points_px,
                     right.edge_points_px,
                     iterations=6,
-                    # a known ring: the radius of its edge nearest this start
-                    radius_prior=self._radius_prior(radius, float(X[0][2])),
+                    radius_prior=prior,
                 )
             except GeometryFailure:
                 continue

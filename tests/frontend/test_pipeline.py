@@ -338,6 +338,8 @@ def test_impossible_known_ring_dimensions_name_their_field() -> None:
         KnownRing(outer_radius_m=0.5, wall_height_m=-0.1)
     with pytest.raises(ValueError, match=r"known_ring\.lip_thickness_m"):
         KnownRing(outer_radius_m=0.5, lip_thickness_m=float("nan"))
+    with pytest.raises(ValueError, match=r"known_ring\.edge_tolerance"):
+        KnownRing(outer_radius_m=0.5, edge_tolerance=0.0)
     assert KnownRing(outer_radius_m=0.5, wall_outer_radius_m=0.48, lip_thickness_m=0.01).lip == (
         pytest.approx(0.02),
         0.01,
