@@ -1065,33 +1065,25 @@ class StereoFrontend:
             radius = float(
                 np.linalg.norm(X[0]) / circle_scale(self.rig.K_left, left.conic, n_l, d_l)
             )
+            fit = partial(
+                refine_circle,
+                self.rig,
+                X[0],
+                n_l,
+                radius,
+                left.edge_points_px,
+                right.edge_points_px,
+                iterations=6,
+            )
             # a known ring: the radius of its edge nearest this start
             prior = self._radius_prior(radius, float(X[0][2]))
             try:
-                if prior is not None and cfg.known_ring is not None:
-                    if prior[0] != cfg.known_ring.outer_radius_m:
-                        # the inner edge only if the circle is that edge by its own radius
-                        free = refine_circle(
-                            self.rig,
-                            X[0],
-                            n_l,
-                            radius,
-                            left.edge_points_px,
-                            right.edge_points_px,
-                            iterations=6,
-                        )
-                        if abs(free.radius - prior[0]) > cfg.known_ring.edge_tolerance * prior[0]:
-                            continue
-                circ = refine_circle(
-                    self.rig,
-                    X[0],
-                    n_l,
-                    radius,
-                    left.edge_points_px,
-                    right.edge_points_px,
-                    iterations=6,
-                    radius_prior=prior,
-                )
+                known = cfg.known_ring
+                if known is not None and prior is not None and prior[0] != known.outer_radius_m:
+                    # the inner edge only if the circle is that edge by its own radius
+                    if abs(fit().radius - prior[0]) > known.edge_tolerance * prior[0]:
+                        continue
+                circ = fit(radius_prior=prior)
             except GeometryFailure:
                 continue
             rms = circle_rms(self.rig, circ, left.edge_points_px, right.edge_points_px)
