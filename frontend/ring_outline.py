@@ -44,6 +44,7 @@ from satpose.datasets.geometry import Rigid3
 from satpose.frontend.conics import circle_to_conic, sampson_distance
 from satpose.frontend.edges import EdgeSearchConfig, edges_of_polarity
 from satpose.frontend.measurements import Camera
+from satpose.frontend.rim import rim_samples, wall_facing
 from satpose.frontend.stereo import (
     Circle3D,
     GeometryFailure,
@@ -229,15 +230,15 @@ def _unpack(x: np.ndarray, s: _State) -> _State:
     return _State(s.c + x[:3], n / np.linalg.norm(n), s.r * math.exp(x[5]), s.h + x[6] * s.r)
 
 
-def _inner_distances(
-    K: np.ndarray, T: Rigid3, s: _State, width: float, points: np.ndarray
+def _concentric_distances(
+    K: np.ndarray, T: Rigid3, s: _State, inset: float, points: np.ndarray
 ) -> np.ndarray:
-    """Signed distances [px] (> 0 outside) of ``points`` to the image of the rim's inner
-    edge (the circle ``width`` smaller, concentric, in the rim's plane) in the camera ``K``
-    posed ``T`` (cam_from_left)."""
+    """Signed distances [px] (> 0 outside) of ``points`` to the image of the circle ``inset``
+    smaller than the rim, concentric, in its plane (0: the rim itself; the rim's width: its
+    inner edge) in the camera ``K`` posed ``T`` (cam_from_left)."""
     u, v = tangent_basis(s.n)
     circle_frame = Rigid3(R=np.column_stack([u, v, s.n]), t=s.c)
-    C = circle_to_conic(K, T @ circle_frame, max(s.r - width, 1e-6))
+    C = circle_to_conic(K, T @ circle_frame, max(s.r - inset, 1e-6))
     return sampson_distance(points, C)
 
 
@@ -315,7 +316,7 @@ def fit_ring_outline(
             if height_prior is not None:
                 # a known height fixes where the base's arc lies; a point beside it that lies
                 # nearer the rim's own image is the crease between rim and wall (kind 4)
-                d_rim = [_inner_distances(K, T, t, 0.0, p) for t in states]
+                d_rim = [_concentric_distances(K, T, t, 0.0, p) for t in states]
                 crease = (kind != 0) & (np.abs(d_rim[0]) < np.abs(r0))
                 kind = np.where(crease, 4, kind)
             res.append(np.where(crease, d_rim[0], r0) if crease.any() else r0)
@@ -332,7 +333,7 @@ def fit_ring_outline(
                     ]
                 jac.append(np.stack(cols, axis=1))
             if len(q_in):
-                d = [_inner_distances(K, T, t, width, q_in) for t in states]
+                d = [_concentric_distances(K, T, t, width, q_in) for t in states]
                 res.append(d[0])
                 kinds.append(np.full(len(q_in), 3))
                 if jacobian:
@@ -461,18 +462,14 @@ def inner_edge_points(
     Returns:
         (N, 2) undistorted edge points per camera (N may be 0).
     """
-    u, v = tangent_basis(circle.normal)
-    phi = np.linspace(0.0, 2.0 * math.pi, samples, endpoint=False)
-    rho = np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v
     r_in = circle.radius - width_m
     if r_in <= 0:
         return np.zeros((0, 2)), np.zeros((0, 2))
+    outer, rho = rim_samples(circle, samples)
     inner = circle.center + r_in * rho
-    outer = circle.center + circle.radius * rho
     out = []
     for cam, image_s in zip((Camera.LEFT, Camera.RIGHT), images_s, strict=True):
-        view = rig.center(cam) - inner
-        facing = np.einsum("ij,ij->i", rho, view) / np.linalg.norm(view, axis=1)
+        facing = wall_facing(inner, rho, rig.center(cam))
         p_in = rig.project_into(cam, inner)
         d = rig.project_into(cam, outer) - p_in
         face_px = np.linalg.norm(d, axis=1)
