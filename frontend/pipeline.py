@@ -878,8 +878,8 @@ class StereoFrontend:
             return None
         r_in, r_out = known.inner_radius_m, known.outer_radius_m
         if radius is not None and r_in is not None and abs(radius - r_in) < abs(radius - r_out):
-            apart_px = (r_out - r_in) * float(self.rig.K_left[0, 0]) / max(depth_m or 0.0, 1e-6)
-            if depth_m is None or apart_px > 2 * self.config.ring.edge_search_px:
+            reach_px = 2 * self.config.ring.edge_search_px
+            if depth_m is None or (r_out - r_in) * self.rig.K_left[0, 0] > reach_px * depth_m:
                 return (r_in, known.radius_sigma_m)
         return (r_out, known.radius_sigma_m)
 
@@ -930,16 +930,19 @@ class StereoFrontend:
                 lip=lip,
             )
 
+        images_s: tuple[np.ndarray, np.ndarray] | None = None  # smoothed once, if needed
         for circ in circles:
             try:
                 outline = fit(circ, None)
                 if known is not None and known.inner_radius_m is not None and height_prior:
                     width = known.outer_radius_m - known.inner_radius_m
-                    images_s = tuple(
-                        smoothed(imgs[cam].gray, cfg.ring.edges) for cam in ("left", "right")
-                    )
+                    if images_s is None:
+                        images_s = (
+                            smoothed(imgs["left"].gray, cfg.ring.edges),
+                            smoothed(imgs["right"].gray, cfg.ring.edges),
+                        )
                     inner = inner_edge_points(
-                        self.rig, outline.circle, width, (images_s[0], images_s[1]), cfg.ring.edges
+                        self.rig, outline.circle, width, images_s, cfg.ring.edges
                     )
                     if min(len(p) for p in inner) >= 6:
                         outline = fit(outline.circle, (inner[0], inner[1], width))
