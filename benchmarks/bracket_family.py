@@ -119,12 +119,9 @@ def member(
     if not (seq / "frames.csv").is_file():
         print(f"rendering seed {seed}", flush=True)
         render_bracket_sequence(seed, seq, frames=frames, size=size, overwrite=True)
-    if array_plane:
-        res = score_sequence(
-            seq, root / f"run-{seed}-array-plane", labelling=LabellingConfig(plane_normals=True)
-        )
-    else:
-        res = score_sequence(seq, root / f"run-{seed}")
+    run = root / (f"run-{seed}-array-plane" if array_plane else f"run-{seed}")
+    labelling = LabellingConfig(plane_normals=True) if array_plane else None
+    res = score_sequence(seq, run, labelling=labelling)
     print(seed, res["summary"], flush=True)
     return res
 
