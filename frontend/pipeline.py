@@ -107,6 +107,13 @@ class StereoRingConfig:
             fraction is rejected (an inner edge); a larger one replaces the known radius (the
             outer edge, found late).
         radius_memory: frames over which the radius estimate is averaged.
+        memory_reset_frames: a circle refused only for being smaller than the remembered
+            radius, seen in this many frames in a row (radii within ``max_radius_change`` of
+            each other) with no ring accepted in between, is taken and the memory restarts
+            from it: the remembered circle was then not the rim's outer edge (a wall's base
+            or a mismatched pair taken at the first sighting, tuning seed 27: 6 % too large,
+            every later frame refused), and the smaller one is the rim or its concentric,
+            coplanar inner edge, whose centre and normal hold either way.
         normal_sigma_floor_deg, center_sigma_floor_m, disparity_sigma_floor_px: standard
             deviations added to the fit's normal and centre (across the line of sight; along
             it, the depth error of this disparity error) for edge biases the fit cannot see
@@ -149,6 +156,7 @@ class StereoRingConfig:
     max_pairs: int = 8
     max_radius_change: float = 0.04
     radius_memory: int = 20
+    memory_reset_frames: int = 3
     normal_sigma_floor_deg: float = 0.7
     center_sigma_floor_m: float = 0.003
     disparity_sigma_floor_px: float = 0.12
@@ -176,6 +184,10 @@ class StereoRingConfig:
             raise ValueError(f"stereo_ring.sweep_step_px must be > 0, got {self.sweep_step_px}")
         if not (math.isfinite(self.min_radius_m) and self.min_radius_m >= 0):
             raise ValueError(f"stereo_ring.min_radius_m must be >= 0, got {self.min_radius_m}")
+        if self.memory_reset_frames < 2:
+            raise ValueError(
+                f"stereo_ring.memory_reset_frames must be >= 2, got {self.memory_reset_frames}"
+            )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -342,6 +354,10 @@ class StereoFrontend:
         self.target = TargetFrameTracker(config=cfg.pose)
         self._history: list[tuple[float, Rigid3]] = []
         self._radii: list[float] = []
+        # radii of circles refused only by the radius memory: this frame's, and one list per
+        # earlier frame in a row without a ring (`StereoRingConfig.memory_reset_frames`)
+        self._refused_now: list[float] = []
+        self._refused: list[list[float]] = []
         self._ring_channel = "grey"  # the images the ring is tracked on: "grey" or "colour"
         self._last_ring: tuple[int, float, RingMeasurement] | None = None  # index, t_s, ring
         self._previous_index: int | None = None  # the frame before this one that came in
@@ -400,6 +416,7 @@ class StereoFrontend:
         self, index: int, t_s: float, left: np.ndarray, right: np.ndarray, timer: _Timer
     ) -> FrameMeasurements:
         failures: list[str] = []
+        self._refused_now = []
         with timer("undistort"):
             try:
                 imgs = {
@@ -443,6 +460,9 @@ class StereoFrontend:
             ring = self._choose_ring(circles, obs, landmarks, predicted, failures)
         if ring is not None:
             self._last_ring = (index, t_s, ring)
+        keep = self.config.stereo_ring.memory_reset_frames - 1
+        self._refused = [] if ring is not None else [*self._refused, self._refused_now][-keep:]
+        self._refused_now = []
         with timer("pose"):
             if (
                 ring is not None
@@ -1058,6 +1078,7 @@ class StereoFrontend:
         cand_r = cone_circle_candidates(self.rig.K_right, right.conic)
         out: list[tuple[float, Circle3D]] = []
         small = False
+        inner: float | None = None
         for n_l, d_l in cone_circle_candidates(self.rig.K_left, left.conic):
             _, d_r = min(cand_r, key=lambda c: float(np.linalg.norm(R.T @ c[0] - n_l)))
             pl = self.rig.K_left @ d_l
@@ -1097,7 +1118,20 @@ class StereoFrontend:
                 and self._radii
                 and circ.radius < float(np.median(self._radii)) * (1 - cfg.max_radius_change)
             ):
-                continue  # smaller than the ring seen so far: an inner edge, not the outer one
+                # smaller than the ring seen so far: an inner edge, not the outer one, unless
+                # the remembered circle is stale (`StereoRingConfig.memory_reset_frames`)
+                if not self._memory_is_stale(circ.radius):
+                    self._refused_now.append(circ.radius)
+                    inner = float(np.median(self._radii))
+                    continue
+                log.info(
+                    "ring: a %.3f m circle in %d frames in a row, the remembered %.3f m in "
+                    "none: the radius memory restarts",
+                    circ.radius,
+                    cfg.memory_reset_frames,
+                    float(np.median(self._radii)),
+                )
+                self._radii = []
             if cfg.known_ring is None and circ.radius < cfg.min_radius_m:
                 small = True
                 continue  # a closed curve of texture or a component, not a ring
@@ -1107,12 +1141,30 @@ class StereoFrontend:
                 f"the two ring ellipses make a circle smaller than min_radius_m "
                 f"({cfg.min_radius_m:g} m): not a ring"
             )
+        if not out and inner is not None:
+            raise GeometryFailure(
+                f"the two ring ellipses make a circle smaller than the ring seen so far "
+                f"({inner:.3f} m): taken for an inner edge"
+            )
         if not out:
             raise GeometryFailure(
                 "the two ring ellipses do not make one circle consistent with the ring seen so far"
             )
         out.sort(key=lambda x: x[0])
         return [c for _, c in out]
+
+    def _memory_is_stale(self, radius: float) -> bool:
+        """Whether a circle of ``radius`` that the radius memory refuses was refused in
+        each of the last ``memory_reset_frames - 1`` frames too, with no ring in between,
+        at a radius within ``max_radius_change`` of it."""
+        cfg = self.config.stereo_ring
+        need = cfg.memory_reset_frames - 1
+        if len(self._refused) < need:
+            return False
+        return all(
+            any(abs(r - radius) <= cfg.max_radius_change * radius for r in frame)
+            for frame in self._refused[-need:]
+        )
 
     def _choose_ring(
         self,
