@@ -56,7 +56,12 @@ from satpose.frontend.panel import (
     PanelTracker,
 )
 from satpose.frontend.pose import PoseConfig, TargetFrameTracker
-from satpose.frontend.preprocess import PreparedImage, PreprocessConfig, Undistorter
+from satpose.frontend.preprocess import (
+    PreparedImage,
+    PreprocessConfig,
+    Undistorter,
+    dominant_colour,
+)
 from satpose.frontend.rim import (
     RimFit,
     RimFitConfig,
@@ -64,7 +69,7 @@ from satpose.frontend.rim import (
     fit_outer_rim,
     projected_observation,
 )
-from satpose.frontend.ring import Detector, RingConfig, RingTracker, contrast_scale
+from satpose.frontend.ring import Detector, RingConfig, RingTrack, RingTracker, contrast_scale
 from satpose.frontend.ring_choice import (
     coplanar_outer,
     front_choice,
@@ -143,13 +148,15 @@ class StereoRingConfig:
             which stereo reconstructs as consistently as the ring (tuning seeds 31, 32, 47:
             0.07-0.10 m circles in foil taken for rings of 0.28-0.65 m, 0.6-0.7 m off).
             0: no lower bound. A stated `known_ring` is used instead.
-        colour_contrast: when the grey images give no ring, acquire it again on the colour
-            images' colour contrast (`Undistorter.colour_contrast`: largest minus smallest
-            channel) and track it there while it holds: a dyed rim (blue or gold anodising)
-            on a neutral panel, or a neutral rim on gold foil, can have almost the
-            luminance of what surrounds it (tuning seed 32: a blue rim on grey foil, no
-            ring-like ellipse in grey, its outer rim within 0.1 px on the colour
-            contrast). Grey cameras: nothing changes.
+        colour_contrast: acquire the ring on the colour images' colour contrast too
+            (`Undistorter.colour_contrast`: each pixel's colour component off the pair's
+            dominant colour) and track it there while it holds; at acquisition the larger
+            ring of grey and colour is taken, while tracking colour is tried when grey
+            loses the ring: a dyed rim (blue or gold anodising) on a neutral panel, or a
+            neutral rim on gold foil, can have almost the luminance of what surrounds it
+            (tuning seed 32: a blue rim on grey foil, no ring-like ellipse in grey, its
+            outer rim within 0.1 px on the colour contrast), and foil texture that hides
+            the rim in grey vanishes there. Grey cameras: nothing changes.
     """
 
     max_rms_px: float = 0.6
@@ -560,10 +567,15 @@ class StereoFrontend:
     ) -> RingResult:
         """`_ring_in` on the images the ring is tracked on (grey, or colour contrast), then,
         if that finds no ring, on the other ones (`StereoRingConfig.colour_contrast`; colour
-        images only). The failures reported are those of the grey images when neither
-        finds the ring."""
+        images only). When neither camera is tracking (acquisition), both kinds are tried
+        and `_better_channel` chooses: a closed curve in foil texture can make a consistent
+        small circle in grey while the rim shows only in colour (tuning seed 24: a 0.14 m
+        curve in amber foil inside a dark blue 0.37 m rim). The failures reported are those
+        of the grey images when neither finds the ring, and those of colour that differ."""
         order = ["grey", "colour"] if self._ring_channel == "grey" else ["colour", "grey"]
+        acquiring = all(t.track is None for t in self.rings.values())
         tried: dict[str, tuple[list[str], RingResult]] = {}
+        found_in: dict[str, tuple[list[str], RingResult, dict[str, RingTrack | None]]] = {}
         for channel in order:
             images = self._ring_images(channel, imgs, raw, timer)
             if images is None:
@@ -574,14 +586,40 @@ class StereoFrontend:
                 self._ring_channel = channel
             notes: list[str] = []
             found = self._ring_in(images, notes, outlines, gap, timer)
-            if found[0]:
+            if found[0] and not acquiring:
                 failures += notes
                 return found
+            if found[0]:
+                tracks = {cam: t.track for cam, t in self.rings.items()}
+                found_in[channel] = (notes, found, tracks)
             tried[channel] = (notes, found)
+        if found_in:
+            channel = self._better_channel({c: v[1][0][0] for c, v in found_in.items()})
+            notes, found, tracks = found_in[channel]
+            for cam, tracker in self.rings.items():
+                tracker.track = tracks[cam]
+            self._ring_channel = channel
+            failures += notes
+            return found
         self._ring_channel = "grey"
         notes, found = tried["grey"]
         failures += notes
+        if "colour" in tried:  # what colour saw, where it differs (e.g. a refused circle)
+            failures += [f"{n} (colour contrast)" for n in tried["colour"][0] if n not in notes]
         return found
+
+    def _better_channel(self, rings: dict[str, Circle3D]) -> str:
+        """Of the rings acquired on grey and on colour contrast, the channel to take: the
+        larger ring where the radii differ by more than ``max_radius_change`` (another,
+        larger curve: acquisition's rule), else the one measured more precisely (the
+        smaller centre covariance: one curve, seen with less noise on one of them)."""
+        if len(rings) == 1:
+            return next(iter(rings))
+        by_size = sorted(rings, key=lambda c: rings[c].radius)
+        small, large = rings[by_size[0]], rings[by_size[-1]]
+        if large.radius > small.radius * (1 + self.config.stereo_ring.max_radius_change):
+            return by_size[-1]
+        return min(rings, key=lambda c: float(np.trace(rings[c].covariance[:3, :3])))
 
     def _ring_images(
         self,
@@ -598,8 +636,9 @@ class StereoFrontend:
             return None
         with timer("colour_contrast"):
             out = {}
+            dominant = dominant_colour(list(raw.values()))
             for cam, image in raw.items():
-                c = self.undistort[cam].colour_contrast(image)
+                c = self.undistort[cam].colour_contrast(image, dominant)
                 if c is None or c.problem is not None:
                     return None
                 out[cam] = c

@@ -7,6 +7,8 @@ ellipse, and a pixel maps through ``K`` alone.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -91,19 +93,31 @@ class Undistorter:
         img = self._checked(image)
         return self._undistorted(img, self._gray(img))
 
-    def colour_contrast(self, image: np.ndarray) -> PreparedImage | None:
+    def colour_contrast(
+        self, image: np.ndarray, dominant: np.ndarray | None = None
+    ) -> PreparedImage | None:
         """The colour-contrast image of a BGR ``image``, undistorted like `__call__`: per
-        pixel the largest minus the smallest of its three channels, [0, 1]. A neutral
-        surface (grey, white or black) is 0 there, a dyed or gold one is not, whatever
-        its brightness: a blue anodised rim on a grey panel of the same luminance is an
-        edge here and hardly one in grey. None for a grey (2-D) image; an image without
-        colour is "too dark" (its `PreparedImage.problem`)."""
+        pixel the length of its colour's component off the ``dominant`` colour (a unit BGR
+        vector, `dominant_colour`; None: this image's own), [0, 1]. A surface of the
+        dominant colour is 0 there whatever its brightness, so the brightness texture of
+        the panel that fills most of the view (foil facets, MLI wrinkles) vanishes, while a
+        surface of another colour is an edge: a blue anodised rim on grey foil of the same
+        luminance, a neutral or dark blue rim on gold foil. The component is linear in the
+        colour, so a pixel that mixes a rim and a panel of the dominant colour (an edge) is
+        the same mixture of their values and the edge keeps its place. None for a grey
+        (2-D) image; an image without another colour is "too dark" (its
+        `PreparedImage.problem`)."""
         img = self._checked(image)
         if img.ndim != 3 or img.shape[2] != 3:
             return None
-        bgr = [self._gray(np.ascontiguousarray(img[..., k])) for k in range(3)]
-        chroma = cv2.max(cv2.max(bgr[0], bgr[1]), bgr[2]) - cv2.min(cv2.min(bgr[0], bgr[1]), bgr[2])
-        return self._undistorted(img, chroma)
+        bgr = cv2.merge([self._gray(np.ascontiguousarray(img[..., k])) for k in range(3)])
+        u = dominant_colour([image]) if dominant is None else dominant
+        if u is None:
+            u = np.full(3, 1.0 / math.sqrt(3.0))
+        along = cv2.transform(bgr, np.asarray(u, np.float32).reshape(1, 3))
+        off = cv2.subtract(bgr, cv2.merge([along * np.float32(c) for c in u]))
+        length = cv2.sqrt(cv2.transform(off * off, np.ones((1, 3), np.float32)))
+        return self._undistorted(img, length)
 
     def _checked(self, image: np.ndarray) -> np.ndarray:
         """``image`` as an array, (H, W) or (H, W, C) of this camera's size.
@@ -209,6 +223,28 @@ class Undistorter:
         """Raw (distorted) pixels (N, 2) to undistorted pixels (N, 2)."""
         xy = self.camera.undistort_points(pixels)
         return self.camera.normalized_to_pixels(xy, distort=False)
+
+
+def dominant_colour(images: Sequence[np.ndarray], lit_fraction: float = 0.1) -> np.ndarray | None:
+    """The commonest colour of the lit pixels of BGR ``images`` (one camera's, or both of a
+    stereo pair, so that both get the same colour contrast) as a unit BGR vector: the median
+    chromaticity (each channel over the sum of the three) of the pixels whose sum exceeds
+    ``lit_fraction`` of the images' 99.5th percentile. None for grey images, non-finite
+    values or nothing lit."""
+    bgr = [np.asarray(im, np.float32) for im in images if np.ndim(im) == 3 and im.shape[2] == 3]
+    if not bgr:
+        return None
+    pixels = np.concatenate([b[::2, ::2].reshape(-1, 3) for b in bgr])  # every 4th: plenty
+    total = pixels.sum(axis=1)
+    if not np.all(np.isfinite(total)):
+        return None
+    top = float(np.percentile(total, 99.5))
+    lit = total > lit_fraction * top
+    if not (top > 0 and lit.any()):
+        return None
+    c = np.median(pixels[lit] / total[lit, None], axis=0)
+    n = float(np.linalg.norm(c))
+    return c / n if n > 0 else None
 
 
 def _nonfinite(img: np.ndarray) -> int:
