@@ -171,3 +171,19 @@ def test_a_stale_radius_memory_restarts(reset_after: int) -> None:
             assert abs(m.ring.radius_m - 0.30) < 0.003, m.ring.radius_m
     with pytest.raises(ValueError, match="memory_reset_frames"):
         replace(cfg.stereo_ring, memory_reset_frames=1)
+
+
+def test_better_channel_takes_another_larger_curve_else_the_more_precise() -> None:
+    """`_better_channel`: radii more than `max_radius_change` apart: the larger ring; within
+    it: the smaller centre covariance, whichever is larger; one channel: that one."""
+    fe = StereoFrontend(_calibration())
+    rim = _rim()
+
+    def ring(radius: float, sigma_m: float) -> Circle3D:
+        return replace(rim, radius=radius, covariance=np.eye(7) * sigma_m**2)
+
+    assert fe._better_channel({"grey": ring(0.12, 1e-4), "colour": ring(0.30, 1e-2)}) == "colour"
+    assert fe._better_channel({"grey": ring(0.30, 1e-2), "colour": ring(0.12, 1e-4)}) == "grey"
+    assert fe._better_channel({"grey": ring(0.300, 2e-3), "colour": ring(0.305, 3e-3)}) == "grey"
+    assert fe._better_channel({"grey": ring(0.305, 3e-3), "colour": ring(0.300, 2e-3)}) == "colour"
+    assert fe._better_channel({"colour": ring(0.1, 1.0)}) == "colour"
