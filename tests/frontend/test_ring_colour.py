@@ -97,6 +97,19 @@ def test_colour_contrast_is_the_component_off_the_dominant_colour() -> None:
     assert float(np.min(c.gray[12:18, 32:48])) > 60 / 255
 
 
+def _follows_the_rim_on_colour(calib: Calibration, left: np.ndarray, right: np.ndarray) -> None:
+    """Two frames of the pair: the rim in each (radius within 3 mm, centre within 1 cm),
+    tracked on the colour contrast."""
+    fe = StereoFrontend(calib)
+    rim = _rim()
+    for k in range(2):
+        m = fe.process(k, float(k), left, right)
+        assert m.ring is not None, m.failures
+        assert abs(m.ring.radius_m - rim.radius) < 0.003, m.ring.radius_m
+        assert float(np.linalg.norm(m.ring.center_m - rim.center)) < 0.01, m.ring.center_m
+        assert fe._ring_channel == "colour"
+
+
 def test_rim_of_the_panels_luminance_is_acquired_on_colour() -> None:
     """Drawn stereo pair: in grey (the images converted, or the colour pass off) no ring; on
     colour contrast the ring's radius within 3 mm and its centre within 1 cm (noise 1 grey
@@ -108,14 +121,7 @@ def test_rim_of_the_panels_luminance_is_acquired_on_colour() -> None:
     cfg = FrontendConfig()
     off = replace(cfg, stereo_ring=replace(cfg.stereo_ring, colour_contrast=False))
     assert StereoFrontend(calib, off).process(0, 0.0, left, right).ring is None
-    fe = StereoFrontend(calib)
-    rim = _rim()
-    for k in range(2):
-        m = fe.process(k, float(k), left, right)
-        assert m.ring is not None, m.failures
-        assert abs(m.ring.radius_m - rim.radius) < 0.003, m.ring.radius_m
-        assert float(np.linalg.norm(m.ring.center_m - rim.center)) < 0.01, m.ring.center_m
-    assert fe._ring_channel == "colour"
+    _follows_the_rim_on_colour(calib, left, right)
 
 
 def _with_disc(img: np.ndarray, T: Rigid3, grey: float) -> np.ndarray:
@@ -141,14 +147,7 @@ def test_acquisition_takes_the_larger_ring_of_grey_and_colour() -> None:
     off = replace(cfg, stereo_ring=replace(cfg.stereo_ring, colour_contrast=False))
     grey = StereoFrontend(calib, off).process(0, 0.0, left, right)
     assert grey.ring is not None and abs(grey.ring.radius_m - 0.12) < 0.005, grey.ring
-    fe = StereoFrontend(calib)
-    rim = _rim()
-    for k in range(2):
-        m = fe.process(k, float(k), left, right)
-        assert m.ring is not None, m.failures
-        assert abs(m.ring.radius_m - rim.radius) < 0.003, m.ring.radius_m
-        assert float(np.linalg.norm(m.ring.center_m - rim.center)) < 0.01, m.ring.center_m
-        assert fe._ring_channel == "colour"
+    _follows_the_rim_on_colour(calib, left, right)
 
 
 @pytest.mark.parametrize("reset_after", [3, 4])
