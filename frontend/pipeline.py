@@ -469,7 +469,6 @@ class StereoFrontend:
             self._last_ring = (index, t_s, ring)
         keep = self.config.stereo_ring.memory_reset_frames - 1
         self._refused = [] if ring is not None else [*self._refused, self._refused_now][-keep:]
-        self._refused_now = []
         with timer("pose"):
             if (
                 ring is not None
@@ -574,8 +573,8 @@ class StereoFrontend:
         of the grey images when neither finds the ring, and those of colour that differ."""
         order = ["grey", "colour"] if self._ring_channel == "grey" else ["colour", "grey"]
         acquiring = all(t.track is None for t in self.rings.values())
-        tried: dict[str, tuple[list[str], RingResult]] = {}
-        found_in: dict[str, tuple[list[str], RingResult, dict[str, RingTrack | None]]] = {}
+        # per channel tried: its failure notes, its result and the tracks it left
+        tried: dict[str, tuple[list[str], RingResult, dict[str, RingTrack | None]]] = {}
         for channel in order:
             images = self._ring_images(channel, imgs, raw, timer)
             if images is None:
@@ -589,20 +588,18 @@ class StereoFrontend:
             if found[0] and not acquiring:
                 failures += notes
                 return found
-            if found[0]:
-                tracks = {cam: t.track for cam, t in self.rings.items()}
-                found_in[channel] = (notes, found, tracks)
-            tried[channel] = (notes, found)
-        if found_in:
-            channel = self._better_channel({c: v[1][0][0] for c, v in found_in.items()})
-            notes, found, tracks = found_in[channel]
+            tried[channel] = (notes, found, {cam: t.track for cam, t in self.rings.items()})
+        rings = {c: v[1][0][0] for c, v in tried.items() if v[1][0]}
+        if rings:
+            channel = self._better_channel(rings)
+            notes, found, tracks = tried[channel]
             for cam, tracker in self.rings.items():
                 tracker.track = tracks[cam]
             self._ring_channel = channel
             failures += notes
             return found
         self._ring_channel = "grey"
-        notes, found = tried["grey"]
+        notes, found, _ = tried["grey"]
         failures += notes
         if "colour" in tried:  # what colour saw, where it differs (e.g. a refused circle)
             failures += [f"{n} (colour contrast)" for n in tried["colour"][0] if n not in notes]
@@ -944,8 +941,11 @@ class StereoFrontend:
 
     def _on_inner_edge(self, circle: Circle3D) -> bool:
         """Whether ``circle`` is a known ring's inner edge (`_radius_prior`)."""
+        return self._is_inner_prior(self._radius_prior(circle.radius))
+
+    def _is_inner_prior(self, prior: tuple[float, float] | None) -> bool:
+        """Whether a `_radius_prior` is a known ring's inner edge's (not its outer rim's)."""
         known = self.config.stereo_ring.known_ring
-        prior = self._radius_prior(circle.radius)
         return known is not None and prior is not None and prior[0] != known.outer_radius_m
 
     def _height_prior(self) -> tuple[float, float] | None:
@@ -1141,10 +1141,10 @@ class StereoFrontend:
             # a known ring: the radius of its edge nearest this start
             prior = self._radius_prior(radius, float(X[0][2]))
             try:
-                known = cfg.known_ring
-                if known is not None and prior is not None and prior[0] != known.outer_radius_m:
+                if self._is_inner_prior(prior):
                     # the inner edge only if the circle is that edge by its own radius
-                    if abs(fit().radius - prior[0]) > known.edge_tolerance * prior[0]:
+                    assert prior is not None and cfg.known_ring is not None
+                    if abs(fit().radius - prior[0]) > cfg.known_ring.edge_tolerance * prior[0]:
                         continue
                 circ = fit(radius_prior=prior)
             except GeometryFailure:
